@@ -1,0 +1,46 @@
+"""Install with colcon (ament_python) inside a ROS 2 workspace, or with pip outside ROS."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "vi3_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    description="Metric dense geometry from a 3D foundation model anchored by an IMU (VI3) as a ROS 2 node",
+    license="Apache-2.0",
+    packages=find_packages(include=["vi3_core", "vi3_core.*", "vi3_ros", "vi3_ros.*", "msg_adapters",
+                                    "msg_adapters.*"]),
+    package_data={"vi3_core": ["data/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "torch>=2.1",
+        "opencv-python-headless>=4.8",
+        "rosbags>=0.10",
+        "mcap>=1.1",
+        "mcap-ros2-support>=0.5",
+        "matplotlib>=3.7",
+        "tqdm>=4.60",
+        "pyyaml>=6.0",
+    ],
+    extras_require={
+        "test": ["pytest>=8", "hypothesis>=6.100", "ruff>=0.6", "filelock>=3.12"],
+    },
+    entry_points={
+        "console_scripts": [
+            "vi3 = vi3_ros.cli:main",
+            "vi3_node = vi3_ros.node:main",
+        ],
+    },
+    zip_safe=True,
+)

@@ -1,0 +1,132 @@
+"""The backbone contract: what every 3DFM adapter and the embedded ``classical`` backbone provide.
+
+A backbone maps n undistorted images + intrinsics to a differentiable ``Prediction`` in one convention:
+camera-to-world poses in OpenCV optical axes (x right, y down, z forward), world = first camera
+(T_wc[0] = I at the base prediction), z-depth at the model resolution, confidence (higher is better).
+Up-to-scale models are normalised the way their training normalised them; ``metric`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from vi3_core.types import Geometry
+
+#: Capabilities a backbone may declare.
+CAP_TTR = "ttr"  # has trainable groups for test-time refinement
+CAP_COND_POSE = "cond_pose"  # accepts metric camera poses as input conditioning (Pi3X, DA3)
+CAP_COND_INTRINSICS = "cond_intrinsics"  # accepts intrinsics as conditioning (DA3)
+
+
+@dataclass
+class BackboneInputs:
+    """Preprocessed model inputs.
+
+    images: [n,3,h,w] float in [0,1], RGB, at the model resolution (h, w multiples of the patch size);
+    K: [n,3,3] intrinsics at that resolution (rescaled/cropped consistently with the images);
+    src_hw: (H, W) of the images given to ``preprocess``.
+    """
+
+    images: torch.Tensor
+    K: torch.Tensor
+    src_hw: tuple[int, int]
+
+
+@dataclass
+class Condition:
+    """Metric input conditioning: T_wc [n,4,4] camera-to-world in the first camera frame (metres, float64
+    numpy), optionally K [n,3,3] at the model resolution."""
+
+    T_wc: np.ndarray
+    K: np.ndarray | None = None
+
+
+@dataclass
+class Prediction:
+    """Differentiable outputs (torch). R_wc [n,3,3]; t_wc [n,3] raw translation (model units, or metres
+    when ``metric``); K [n,3,3]; depth [n,h,w] z-depth (> 0); conf [n,h,w] higher is better."""
+
+    R_wc: torch.Tensor
+    t_wc: torch.Tensor
+    K: torch.Tensor
+    depth: torch.Tensor
+    conf: torch.Tensor
+    metric: bool = False
+
+    def geometry(self, scale: float = 1.0) -> Geometry:
+        """Detached numpy ``Geometry`` with translation and depth multiplied by ``scale``."""
+        n = self.R_wc.shape[0]
+        T = np.tile(np.eye(4), (n, 1, 1))
+        T[:, :3, :3] = self.R_wc.detach().double().cpu().numpy()
+        T[:, :3, 3] = self.t_wc.detach().double().cpu().numpy() * scale
+        return Geometry(T_wc=T, K=self.K.detach().double().cpu().numpy(),
+                        depth=self.depth.detach().float().cpu().numpy() * scale,
+                        conf=self.conf.detach().float().cpu().numpy(), metric=self.metric)
+
+
+@dataclass
+class ParamGroups:
+    """Trainable groups for TTR: the camera head, the depth head, and the global (inter-frame)
+    attention blocks in network order (the last L of them are unfrozen by TTR)."""
+
+    camera_head: list[torch.nn.Parameter] = field(default_factory=list)
+    depth_head: list[torch.nn.Parameter] = field(default_factory=list)
+    global_blocks: list[list[torch.nn.Parameter]] = field(default_factory=list)
+
+    def trainable(self, last_blocks: int) -> list[torch.nn.Parameter]:
+        """Camera head + depth head + the last ``last_blocks`` global blocks, without duplicates."""
+        blocks = self.global_blocks[len(self.global_blocks) - last_blocks:] if last_blocks > 0 else []
+        seen, out = set(), []
+        for p in [*self.camera_head, *self.depth_head, *(p for b in blocks for p in b)]:
+            if id(p) not in seen:
+                seen.add(id(p))
+                out.append(p)
+        return out
+
+
+class Backbone(abc.ABC):
+    """A 3DFM (or the classical embedded pipeline) behind one interface.
+
+    Subclasses set ``name``, ``metric``, ``capabilities``, ``patch_size`` and implement ``preprocess``,
+    ``forward``, ``param_groups`` and ``modules``. ``forward`` must be differentiable with respect to
+    the parameters returned by ``param_groups`` when gradients are enabled.
+    """
+
+    name: str = "abstract"
+    metric: bool = False
+    capabilities: frozenset[str] = frozenset()
+    patch_size: int = 14
+
+    def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> None:
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.gradient_checkpointing = False
+
+    @abc.abstractmethod
+    def preprocess(self, images: np.ndarray, K: np.ndarray) -> BackboneInputs:
+        """images [n,H,W] or [n,H,W,3] uint8 (undistorted), K [3,3] -> model inputs on ``device``."""
+
+    @abc.abstractmethod
+    def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
+        """Differentiable prediction; ``condition`` only for backbones with a conditioning capability."""
+
+    @abc.abstractmethod
+    def param_groups(self) -> ParamGroups:
+        """The trainable groups (see ``ParamGroups``)."""
+
+    def modules(self) -> list[torch.nn.Module]:
+        """The torch modules holding all parameters (put in eval mode; frozen except TTR groups)."""
+        return []
+
+    def set_gradient_checkpointing(self, enabled: bool) -> None:
+        """Trade recompute for memory in the trainable blocks (adapters override where upstream allows)."""
+        self.gradient_checkpointing = enabled
+
+    def predict(self, images: np.ndarray, K: np.ndarray, condition: Condition | None = None) -> Geometry:
+        """One no-grad forward pass -> numpy ``Geometry``."""
+        with torch.no_grad():
+            return self.forward(self.preprocess(images, K), condition).geometry()

@@ -1,0 +1,23 @@
+"""Exception types of ``vi3_core``: each names the offending input and what is wrong with it."""
+
+from __future__ import annotations
+
+
+class Vi3Error(Exception):
+    """Base class of every error raised on purpose by vi3_core."""
+
+
+class DataError(Vi3Error, ValueError):
+    """Input data (images, IMU, stamps, files) is malformed or inconsistent."""
+
+
+class CalibrationError(DataError):
+    """Camera intrinsics, distortion or camera-IMU extrinsics are missing or invalid."""
+
+
+class BackboneUnavailable(Vi3Error, ImportError):
+    """A backbone's upstream package or checkpoint is not installed; the message says how to get it."""
+
+
+class ModeNotSupported(Vi3Error):
+    """A backbone was asked for an anchoring mode it cannot do (e.g. conditioning on a model without it)."""

@@ -1,0 +1,74 @@
+"""SO(3)/SE(3) helpers on numpy arrays, batched over leading axes, built on scipy's Rotation.
+
+Rotation vectors are axis * angle in radians; quaternions are (x, y, z, w) as in ROS messages.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """[...,3] -> [...,3,3] skew-symmetric matrices with hat(w) @ x = w x x."""
+    w = np.asarray(w, dtype=np.float64)
+    O = np.zeros(w.shape[:-1] + (3, 3))
+    O[..., 0, 1], O[..., 0, 2] = -w[..., 2], w[..., 1]
+    O[..., 1, 0], O[..., 1, 2] = w[..., 2], -w[..., 0]
+    O[..., 2, 0], O[..., 2, 1] = -w[..., 1], w[..., 0]
+    return O
+
+
+def exp(w: np.ndarray) -> np.ndarray:
+    """Exp: [...,3] rotation vectors -> [...,3,3] rotation matrices (exact at small angles)."""
+    w = np.asarray(w, dtype=np.float64)
+    return Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(w.shape[:-1] + (3, 3))
+
+
+def log(R: np.ndarray) -> np.ndarray:
+    """Log: [...,3,3] rotation matrices -> [...,3] rotation vectors, angle in [0, pi]."""
+    R = np.asarray(R, dtype=np.float64)
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
+
+
+def angle(R: np.ndarray) -> np.ndarray:
+    """Geodesic angle [...] in radians of rotation matrices [...,3,3] (stable near 0 and pi)."""
+    return np.linalg.norm(log(R), axis=-1)
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in radians between vectors a and b [...,3] (atan2 form: accurate for tiny angles)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
+
+
+def quat_to_R(q: np.ndarray) -> np.ndarray:
+    """[...,4] quaternions (x, y, z, w), any norm -> [...,3,3]."""
+    q = np.asarray(q, dtype=np.float64)
+    return Rotation.from_quat(q.reshape(-1, 4)).as_matrix().reshape(q.shape[:-1] + (3, 3))
+
+
+def R_to_quat(R: np.ndarray) -> np.ndarray:
+    """[...,3,3] -> [...,4] unit quaternions (x, y, z, w) with w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat(canonical=True).reshape(R.shape[:-2] + (4,))
+
+
+def make_T(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """[...,3,3] and [...,3] -> [...,4,4] homogeneous transforms."""
+    R, p = np.asarray(R, dtype=np.float64), np.asarray(p, dtype=np.float64)
+    T = np.zeros(np.broadcast_shapes(R.shape[:-2], p.shape[:-1]) + (4, 4))
+    T[..., :3, :3], T[..., :3, 3], T[..., 3, 3] = R, p, 1.0
+    return T
+
+
+def inv_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms [...,4,4]."""
+    T = np.asarray(T, dtype=np.float64)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    return make_T(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def relative_to_first(T: np.ndarray) -> np.ndarray:
+    """Re-anchor poses [n,4,4] (X -> world) so that the first is the identity: T_0^-1 T_i."""
+    return np.einsum("ij,njk->nik", inv_T(T[0]), T)

@@ -1,0 +1,215 @@
+"""The data types shared by every layer (see DESIGN.md, "Data types"). One definition of each.
+
+Frames and units: SI, REP-103. ``B`` is the IMU (body) frame, ``C`` the camera frame with OpenCV optical
+axes (x right, y down, z forward), ``W`` a world frame (ground truth only). ``B1``/``C1`` are the body and
+camera frames at the first frame of a clip. Stamps are float64 seconds. Transforms ``T_XY`` are [4,4]
+homogeneous matrices that map points from frame Y to frame X (the pose of Y in X).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vi3_core.errors import DataError
+
+
+def _f64(a, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.shape[arr.ndim - len(shape_tail):] != shape_tail or arr.ndim != len(shape_tail) + 1:
+        raise DataError(f"{name}: expected shape [N,{','.join(map(str, shape_tail))}], got {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True)
+class ImuSamples:
+    """IMU samples in the body frame B.
+
+    t: [M] float64 s, gyro: [M,3] rad/s, accel: [M,3] m/s^2 (specific force, so +9.81 up at rest).
+    orientation: optional [M,4] quaternion (x, y, z, w) of B in a gravity-aligned world frame (z up), as
+    reported in ``sensor_msgs/Imu.orientation`` by many flight controllers; NaN rows where absent.
+    Construction does not validate values (NaN, gaps, order): ``vi3_core.init.validate_imu`` does, so that
+    bad data becomes a status rather than an exception.
+    """
+
+    t: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    orientation: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "gyro", _f64(self.gyro, (3,), "ImuSamples.gyro"))
+        object.__setattr__(self, "accel", _f64(self.accel, (3,), "ImuSamples.accel"))
+        if self.orientation is not None:
+            object.__setattr__(self, "orientation", _f64(self.orientation, (4,), "ImuSamples.orientation"))
+        for name in ("gyro", "accel") + (("orientation",) if self.orientation is not None else ()):
+            if len(getattr(self, name)) != len(t):
+                raise DataError(f"ImuSamples.{name} has {len(getattr(self, name))} rows for {len(t)} stamps")
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def window(self, t0: float, t1: float, margin: int = 1) -> ImuSamples:
+        """Samples with t0 <= t <= t1, plus ``margin`` samples on each side (for edge interpolation)."""
+        i0 = max(int(np.searchsorted(self.t, t0, side="left")) - margin, 0)
+        i1 = min(int(np.searchsorted(self.t, t1, side="right")) + margin, len(self.t))
+        return self.select(slice(i0, i1))
+
+    def select(self, idx) -> ImuSamples:
+        """Rows ``idx`` (slice, index array or boolean mask)."""
+        ori = None if self.orientation is None else self.orientation[idx]
+        return ImuSamples(self.t[idx], self.gyro[idx], self.accel[idx], ori)
+
+    @staticmethod
+    def concatenate(parts: list[ImuSamples]) -> ImuSamples:
+        """Rows of ``parts`` in order; orientation kept only if every part has it."""
+        if not parts:
+            return ImuSamples(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+        ori = None
+        if all(p.orientation is not None for p in parts):
+            ori = np.concatenate([p.orientation for p in parts])
+        return ImuSamples(np.concatenate([p.t for p in parts]), np.concatenate([p.gyro for p in parts]),
+                          np.concatenate([p.accel for p in parts]), ori)
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Ground truth of a clip's n frames (EuRoC ``state_groundtruth_estimate0`` at the frame stamps).
+
+    T_WB: [n,4,4] body pose in the world W (z up, gravity g_W = [0, 0, -9.81] unless stated);
+    v_WB: [n,3] body velocity in W, m/s; bg, ba: [3] gyro (rad/s) and accel (m/s^2) biases;
+    g_W: [3] gravity in W; depth: optional [n,H,W] z-depth in metres of the (undistorted) clip images, NaN
+    where unknown.
+    """
+
+    T_WB: np.ndarray
+    v_WB: np.ndarray
+    bg: np.ndarray
+    ba: np.ndarray
+    g_W: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    depth: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Clip:
+    """n synchronised frames and the IMU samples covering them.
+
+    stamps: [n] float64 s (camera time, already corrected for the camera-IMU offset);
+    images: [n,H,W] or [n,H,W,3] uint8 (RGB), undistorted; K: [3,3] intrinsics of the undistorted images;
+    T_BC: [4,4] camera pose in the body frame (EuRoC ``T_BS`` of cam0); imu: samples covering
+    [stamps[0], stamps[-1]] with at least one sample beyond each end; gt: optional ground truth;
+    imu_history: optional longer IMU window around the clip (seconds), for the long-window gravity seed.
+    """
+
+    stamps: np.ndarray
+    images: np.ndarray
+    K: np.ndarray
+    T_BC: np.ndarray
+    imu: ImuSamples
+    gt: GroundTruth | None = None
+    imu_history: ImuSamples | None = None
+
+    @property
+    def n(self) -> int:
+        return len(self.stamps)
+
+
+@dataclass
+class Geometry:
+    """What a backbone predicts for a clip (numpy, detached).
+
+    T_wc: [n,4,4] camera-to-world, OpenCV axes, world = first camera (T_wc[0] = I);
+    K: [n,3,3] at the prediction resolution; depth: [n,h,w] z-depth (> 0, NaN/0 invalid);
+    conf: [n,h,w] higher is better; metric: whether translation and depth are in metres.
+    """
+
+    T_wc: np.ndarray
+    K: np.ndarray
+    depth: np.ndarray
+    conf: np.ndarray
+    metric: bool = False
+
+    @property
+    def n(self) -> int:
+        return len(self.T_wc)
+
+    def scaled(self, s: float) -> Geometry:
+        """Translation and depth multiplied by ``s`` (rotation and intrinsics untouched)."""
+        T = self.T_wc.copy()
+        T[:, :3, 3] *= s
+        return Geometry(T, self.K.copy(), self.depth * s, self.conf.copy(), self.metric)
+
+
+class InitStatus(str, enum.Enum):
+    """Outcome of the inertial initialisation."""
+
+    OK = "ok"
+    UNOBSERVABLE = "unobservable"  # too little translation/acceleration: scale cannot be claimed
+    REJECTED = "rejected"  # bad data: NaN/Inf, too few samples, gaps, non-monotonic stamps
+
+
+@dataclass
+class ImuTrajectory:
+    """Metric IMU-propagated states at the clip's n frames, origin at the first body frame B1.
+
+    R: [n,3,3] R_B1Bi; p: [n,3] body positions in B1, m; v: [n,3] body velocities in B1, m/s;
+    T_wc: [n,4,4] camera poses in the first camera frame C1 (T_C1Ci = T_CB T_B1Bi T_BC), metric.
+    """
+
+    R: np.ndarray
+    p: np.ndarray
+    v: np.ndarray
+    T_wc: np.ndarray
+
+
+@dataclass
+class InitResult:
+    """GT-free inertial initialisation of one clip (paper Sec. "Inertial state initialization").
+
+    bg: [3] gyro bias rad/s; g: [3] gravity in B1, m/s^2; scale: s with metric = s * model translation;
+    v1: [3] body velocity at the first frame in B1, m/s; gravity_source: which estimate was adopted;
+    consensus_deg: angle between the fixed points of the seeds (Eq. guard), NaN with a single seed;
+    status/reason: see ``InitStatus``; target: the metric IMU trajectory (None unless status is ok).
+    """
+
+    status: InitStatus
+    reason: str
+    bg: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    g: np.ndarray = field(default_factory=lambda: np.array([np.nan] * 3))
+    scale: float = float("nan")
+    v1: np.ndarray = field(default_factory=lambda: np.array([np.nan] * 3))
+    gravity_source: str = ""
+    consensus_deg: float = float("nan")
+    iterations: int = 0
+    target: ImuTrajectory | None = None
+    diagnostics: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status is InitStatus.OK
+
+
+@dataclass
+class AnchorResult:
+    """Output of ``vi3_core.anchor.anchor`` for one clip.
+
+    geometry: metric Geometry (or the base geometry, unscaled, when the init is not ok);
+    base: the backbone's unanchored Geometry; mode: the anchoring mode that actually ran
+    ("init" | "cond" | "ttr" | "none"); alpha: final TTR scale (or the init scale);
+    losses: per-step dict of loss arrays (TTR), alphas: [K] alpha trajectory; timings: seconds per stage.
+    """
+
+    geometry: Geometry
+    base: Geometry
+    init: InitResult
+    mode: str
+    alpha: float
+    target: ImuTrajectory | None = None
+    losses: dict[str, np.ndarray] = field(default_factory=dict)
+    alphas: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    timings: dict[str, float] = field(default_factory=dict)
+    status: str = ""

@@ -1,0 +1,1 @@
+"""Subcommands of the ``vi3`` CLI, one module each."""

@@ -1,0 +1,46 @@
+"""``vi3 bench NAME``: speed and memory targets, printed as one JSON object per benchmark.
+
+Each benchmark is a ROS-free function ``fn(args) -> dict`` in the module that owns the code it measures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+
+BENCHES: dict[str, str] = {
+    "init": "vi3_core.init.bench:bench_init",
+    "pointcloud": "msg_adapters.bench:bench_pointcloud",
+    "backbone": "vi3_core.backbones.bench:bench_backbone",
+    "ttr": "vi3_core.anchor.bench:bench_ttr",
+    "replay": "vi3_ros.replay_bench:bench_replay",
+}
+
+
+def _load(name: str):
+    module, fn = BENCHES[name].split(":")
+    return getattr(importlib.import_module(module), fn)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run a benchmark and print JSON")
+    p.add_argument("name", choices=[*BENCHES, "all"])
+    p.add_argument("--json", action="store_true", help="print only the JSON object(s)")
+    p.add_argument("--repeats", type=int, default=None, help="timed repetitions (default: per benchmark)")
+    p.add_argument("--backbone", default="classical", help="backbone for backbone/ttr/replay benchmarks")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--input", default=None, help="input sequence for the replay benchmark")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    names = list(BENCHES) if args.name == "all" else [args.name]
+    status = 0
+    for name in names:
+        try:
+            result = {"bench": name, **_load(name)(args)}
+        except (ImportError, AttributeError) as exc:
+            result, status = {"bench": name, "error": f"not available: {exc}"}, 2
+        print(json.dumps(result))
+    return status
