@@ -20,15 +20,36 @@ def hat(w: np.ndarray) -> np.ndarray:
 
 
 def exp(w: np.ndarray) -> np.ndarray:
-    """Exp: [...,3] rotation vectors -> [...,3,3] rotation matrices (exact at small angles)."""
+    """Exp: [...,3] rotation vectors -> [...,3,3] rotation matrices (Rodrigues; Taylor terms below 1e-4 rad)."""
     w = np.asarray(w, dtype=np.float64)
-    return Rotation.from_rotvec(w.reshape(-1, 3)).as_matrix().reshape(w.shape[:-1] + (3, 3))
+    th2 = (w * w).sum(-1)[..., None, None]
+    small = th2 < 1e-8
+    th2s = np.where(small, 1.0, th2)
+    th = np.sqrt(th2s)
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / th)
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / th2s)
+    K = hat(w)
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 def log(R: np.ndarray) -> np.ndarray:
-    """Log: [...,3,3] rotation matrices -> [...,3] rotation vectors, angle in [0, pi]."""
+    """Log: [...,3,3] rotation matrices -> [...,3] rotation vectors, angle in [0, pi].
+
+    Closed form from the skew part; rows within 1e-3 rad of pi (axis ill-conditioned there) go through
+    scipy's quaternion-based conversion.
+    """
     R = np.asarray(R, dtype=np.float64)
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
+    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) * 0.5, -1.0, 1.0)
+    sin = 0.5 * np.linalg.norm(vee, axis=-1)
+    th = np.arctan2(sin, cos)
+    small = th < 1e-4
+    factor = np.where(small, 0.5 + th * th / 12.0, 0.5 * th / np.where(small, 1.0, sin))
+    out = factor[..., None] * vee
+    near_pi = th > np.pi - 1e-3
+    if np.any(near_pi):
+        out[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
+    return out
 
 
 def angle(R: np.ndarray) -> np.ndarray:

@@ -26,6 +26,10 @@ class ImuNoise:
         return ImuNoise(0.0, 0.0, 0.0, 0.0)
 
 
+#: EuRoC's ADIS16448 noise, the default of every simulation.
+EUROC_NOISE = ImuNoise()
+
+
 @dataclass(frozen=True)
 class SimulatedImu:
     """Measurements plus the exact biases at every sample: samples.t [M], bg [M,3], ba [M,3]."""
@@ -41,7 +45,7 @@ def imu_stamps(t0: float, t1: float, rate: float = 200.0) -> np.ndarray:
     return np.arange(k0, k1 + 1) / rate
 
 
-def simulate_imu(traj: Trajectory, t: np.ndarray, *, noise: ImuNoise = ImuNoise(),
+def simulate_imu(traj: Trajectory, t: np.ndarray, *, noise: ImuNoise = EUROC_NOISE,
                  bg0: np.ndarray | None = None, ba0: np.ndarray | None = None,
                  seed: int = 0, with_orientation: bool = False) -> SimulatedImu:
     """Gyro and accelerometer readings at stamps t [M] (uniform rate).

@@ -123,6 +123,10 @@ def make_trajectory(kind: str = "drone", seed: int = 0, *, speed: tuple[float, f
         target = rng.uniform(*speed)
         # Faster motion by raising frequencies keeps the flight inside the room.
         pos = Sines(pos.amp, pos.freq * target / mean_speed, pos.phase, pos.offset, pos.rate)
+        # Small, quicker manoeuvres on top (EuRoC flights accelerate at ~0.5-2 m/s^2, not only drift).
+        agile = _sines(rng, 3, (0.015, 0.04), (0.3, 0.8))
+        pos = Sines(np.concatenate([pos.amp, agile.amp], 1), np.concatenate([pos.freq, agile.freq], 1),
+                    np.concatenate([pos.phase, agile.phase], 1), pos.offset, pos.rate)
         att = _sines(rng, 3, (0.03, 0.08), (0.1, 0.4), offset=(yaw0, 0.0, 0.0))
         att = Sines(att.amp * np.array([[12.0], [1.0], [1.0]]), att.freq * np.array([[0.3], [1.0], [1.0]]),
                     att.phase, att.offset, att.rate)

@@ -1,0 +1,54 @@
+"""Data checks before initialisation. Each returns a human-readable reason, or None when the data is usable,
+so that bad data becomes a ``rejected`` status instead of an exception."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vi3_core.init.options import InitOptions
+from vi3_core.types import Geometry, ImuSamples
+
+
+def check_stamps(stamps: np.ndarray) -> str | None:
+    if len(stamps) < 3:
+        return f"need at least 3 frames to observe acceleration, got {len(stamps)}"
+    if not np.all(np.isfinite(stamps)):
+        return "frame stamps contain NaN/Inf"
+    if np.any(np.diff(stamps) <= 0):
+        i = int(np.argmax(np.diff(stamps) <= 0))
+        return f"frame stamps not strictly increasing at index {i + 1} ({stamps[i]:.6f} -> {stamps[i + 1]:.6f} s)"
+    return None
+
+
+def check_imu(imu: ImuSamples, stamps: np.ndarray, options: InitOptions) -> str | None:
+    """NaN/Inf samples, non-monotonic stamps, coverage of [stamps[0], stamps[-1]], gaps, samples per interval."""
+    if len(imu) < 2:
+        return f"too few IMU samples ({len(imu)})"
+    bad = ~(np.isfinite(imu.t) & np.isfinite(imu.gyro).all(1) & np.isfinite(imu.accel).all(1))
+    if bad.any():
+        return f"{int(bad.sum())} IMU sample(s) with NaN/Inf (first at t={imu.t[np.argmax(bad)]:.6f} s)"
+    dt = np.diff(imu.t)
+    if np.any(dt <= 0):
+        i = int(np.argmax(dt <= 0))
+        return f"IMU stamps not strictly increasing at t={imu.t[i]:.6f} s (next {imu.t[i + 1]:.6f} s)"
+    if imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
+        return (f"IMU covers [{imu.t[0]:.6f}, {imu.t[-1]:.6f}] s but the clip spans "
+                f"[{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
+    span = (imu.t[1:] > stamps[0]) & (imu.t[:-1] < stamps[-1])
+    if span.any() and dt[span].max() > options.max_imu_gap_s:
+        i = int(np.flatnonzero(span)[np.argmax(dt[span])])
+        return f"IMU gap of {dt[i]:.3f} s at t={imu.t[i]:.6f} s (max {options.max_imu_gap_s:.3f} s)"
+    counts = np.diff(np.searchsorted(imu.t, stamps))
+    if counts.min() < options.min_samples_per_interval:
+        i = int(np.argmin(counts))
+        return (f"only {int(counts[i])} IMU sample(s) between frames {i} and {i + 1} "
+                f"(need {options.min_samples_per_interval})")
+    return None
+
+
+def check_geometry(geometry: Geometry, n: int) -> str | None:
+    if geometry.n != n:
+        return f"geometry has {geometry.n} poses for {n} frame stamps"
+    if not np.all(np.isfinite(geometry.T_wc)):
+        return "backbone poses contain NaN/Inf"
+    return None
