@@ -100,6 +100,8 @@ class Backbone(abc.ABC):
     metric: bool = False
     capabilities: frozenset[str] = frozenset()
     patch_size: int = 14
+    #: AdamW learning rate TTR uses for this backbone's trainable groups unless AnchorOptions.lr is set.
+    ttr_lr: float = 1e-5
 
     def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> None:
         self.device = torch.device(device)
@@ -126,7 +128,11 @@ class Backbone(abc.ABC):
         """Trade recompute for memory in the trainable blocks (adapters override where upstream allows)."""
         self.gradient_checkpointing = enabled
 
-    def predict(self, images: np.ndarray, K: np.ndarray, condition: Condition | None = None) -> Geometry:
-        """One no-grad forward pass -> numpy ``Geometry``."""
+    def predict_inputs(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
+        """``forward`` without gradients."""
         with torch.no_grad():
-            return self.forward(self.preprocess(images, K), condition).geometry()
+            return self.forward(inputs, condition)
+
+    def predict(self, images: np.ndarray, K: np.ndarray, condition: Condition | None = None) -> Geometry:
+        """One no-grad forward pass on raw images -> numpy ``Geometry``."""
+        return self.predict_inputs(self.preprocess(images, K), condition).geometry()
