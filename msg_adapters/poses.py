@@ -1,0 +1,172 @@
+"""Poses as [4,4] transforms <-> ``geometry_msgs``/``nav_msgs``/``tf2_msgs`` messages.
+
+A transform ``T_XY`` maps points from frame Y to frame X (the pose of Y in X): a message with
+``header.frame_id = X`` carrying the pose (or ``child_frame_id``) Y. Translations in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from msg_adapters.errors import MalformedMessage
+from msg_adapters.fields import float_array, str_field, vector_field
+from msg_adapters.stamps import make_header, stamp_to_ns
+from msg_adapters.types import MessageTypes
+from vi3_core.so3 import R_to_quat, make_T, quat_to_R
+
+_RIGID_TOL = 1e-4
+
+
+def _transforms(T: Any, name: str, *, single: bool) -> np.ndarray:
+    """Validated rigid transforms: [4,4] when ``single`` else [n,4,4], float64."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MalformedMessage(f"{name} is not a numeric array: {exc}") from exc
+    if T.shape[-2:] != (4, 4) or T.ndim != (2 if single else 3):
+        raise MalformedMessage(f"{name} has shape {T.shape}, expected {'[4,4]' if single else '[n,4,4]'}")
+    if not np.isfinite(T).all():
+        raise MalformedMessage(f"{name} has non-finite entries")
+    if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(initial=0.0) > _RIGID_TOL:
+        raise MalformedMessage(f"{name} bottom row is not [0, 0, 0, 1]")
+    R = T[..., :3, :3]
+    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0.0)
+    if err > _RIGID_TOL or (np.linalg.det(R) <= 0).any():
+        raise MalformedMessage(f"{name} rotation block is not a rotation (|R^T R - I| = {err:.2g})")
+    return T
+
+
+_RIGID_KINDS = {"Pose": ("position", "orientation", "Point"), "Transform": ("translation", "rotation", "Vector3")}
+
+
+def _rigid_msgs(T: np.ndarray, types: MessageTypes, *, kind: str = "Pose") -> list[Any]:
+    """[n,4,4] -> ``geometry_msgs/Pose`` (or ``/Transform``) messages, quaternions computed in one batch."""
+    where, how, point_type = _RIGID_KINDS[kind]
+    quats, points = R_to_quat(T[:, :3, :3]).tolist(), T[:, :3, 3].tolist()
+    return [types.make(f"geometry_msgs/msg/{kind}", **{
+        where: types.make(f"geometry_msgs/msg/{point_type}", x=p[0], y=p[1], z=p[2]),
+        how: types.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3])})
+        for q, p in zip(quats, points)]
+
+
+def _T_from(translation: Any, rotation: Any, name: str) -> np.ndarray:
+    """[4,4] from a Point/Vector3 and a Quaternion message (any non-zero quaternion norm)."""
+    p, q = vector_field(translation, f"{name} translation"), vector_field(rotation, f"{name} rotation", "xyzw")
+    if not (np.isfinite(p).all() and np.isfinite(q).all() and np.linalg.norm(q) > 0):
+        raise MalformedMessage(f"{name}: position {p.tolist()} / quaternion {q.tolist()} is not a valid pose")
+    return make_T(quat_to_R(q), p)
+
+
+def pose_to_T(pose: Any) -> np.ndarray:
+    """``geometry_msgs/Pose`` -> [4,4]."""
+    return _T_from(pose.position, pose.orientation, "pose")
+
+
+def transform_to_T(transform: Any) -> np.ndarray:
+    """``geometry_msgs/Transform`` -> [4,4]."""
+    return _T_from(transform.translation, transform.rotation, "transform")
+
+
+def poses_to_T(poses: Sequence[Any]) -> np.ndarray:
+    """``geometry_msgs/Pose`` sequence (e.g. ``PoseArray.poses``) -> [n,4,4]."""
+    return np.stack([pose_to_T(p) for p in poses]) if len(poses) else np.zeros((0, 4, 4))
+
+
+def pose_array(T: np.ndarray, *, stamp_ns: int, frame_id: str, types: MessageTypes) -> Any:
+    """[n,4,4] poses in ``frame_id`` -> ``geometry_msgs/PoseArray``."""
+    T = _transforms(T, "T", single=False)
+    return types.make("geometry_msgs/msg/PoseArray", header=make_header(stamp_ns=stamp_ns, frame_id=frame_id,
+                                                                          types=types), poses=_rigid_msgs(T, types))
+
+
+def pose_stamped(T: np.ndarray, *, stamp_ns: int, frame_id: str, types: MessageTypes) -> Any:
+    """[4,4] pose in ``frame_id`` -> ``geometry_msgs/PoseStamped``."""
+    T = _transforms(T, "T", single=True)
+    return types.make("geometry_msgs/msg/PoseStamped", header=make_header(stamp_ns=stamp_ns, frame_id=frame_id,
+                                                                            types=types),
+                      pose=_rigid_msgs(T[None], types)[0])
+
+
+def path(T: np.ndarray, *, stamp_ns: int, frame_id: str, types: MessageTypes,
+         stamps_ns: Sequence[int] | None = None) -> Any:
+    """[n,4,4] poses in ``frame_id`` -> ``nav_msgs/Path``; pose i is stamped ``stamps_ns[i]`` (default ``stamp_ns``)."""
+    T = _transforms(T, "T", single=False)
+    stamps = [stamp_ns] * len(T) if stamps_ns is None else list(stamps_ns)
+    if len(stamps) != len(T):
+        raise MalformedMessage(f"path: {len(stamps)} stamps for {len(T)} poses")
+    poses = [types.make("geometry_msgs/msg/PoseStamped", header=make_header(stamp_ns=s, frame_id=frame_id, types=types),
+                        pose=p) for s, p in zip(stamps, _rigid_msgs(T, types))]
+    return types.make("nav_msgs/msg/Path", header=make_header(stamp_ns=stamp_ns, frame_id=frame_id, types=types),
+                      poses=poses)
+
+
+def _covariance(cov: Any, name: str) -> np.ndarray:
+    """[6,6] or [36] covariance -> [36] float64 (row-major); None -> zeros."""
+    if cov is None:
+        return np.zeros(36)
+    try:
+        cov = np.asarray(cov, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MalformedMessage(f"{name} is not numeric: {exc}") from exc
+    if cov.size != 36 or cov.shape not in ((6, 6), (36,)):
+        raise MalformedMessage(f"{name} has shape {cov.shape}, expected [6,6] or [36]")
+    return cov.reshape(36).copy()
+
+
+def _vector3(v: Any, name: str, types: MessageTypes) -> Any:
+    try:
+        v = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MalformedMessage(f"{name} is not numeric: {exc}") from exc
+    if v.shape != (3,):
+        raise MalformedMessage(f"{name} has shape {v.shape}, expected [3]")
+    x, y, z = v.tolist()
+    return types.make("geometry_msgs/msg/Vector3", x=x, y=y, z=z)
+
+
+def odometry(T: np.ndarray, v_linear: np.ndarray, v_angular: np.ndarray, *, stamp_ns: int, frame_id: str,
+             child_frame_id: str, types: MessageTypes, pose_cov: np.ndarray | None = None,
+             twist_cov: np.ndarray | None = None) -> Any:
+    """Pose [4,4] of ``child_frame_id`` in ``frame_id`` and its twist -> ``nav_msgs/Odometry``.
+
+    v_linear [3] m/s and v_angular [3] rad/s are expressed in ``child_frame_id`` (nav_msgs convention).
+    Covariances [6,6] or [36] over (x, y, z, rot x, rot y, rot z); default all zero.
+    """
+    T = _transforms(T, "T", single=True)
+    pose = types.make("geometry_msgs/msg/PoseWithCovariance", pose=_rigid_msgs(T[None], types)[0],
+                      covariance=_covariance(pose_cov, "pose_cov"))
+    twist = types.make("geometry_msgs/msg/TwistWithCovariance",
+                       twist=types.make("geometry_msgs/msg/Twist", linear=_vector3(v_linear, "v_linear", types),
+                                        angular=_vector3(v_angular, "v_angular", types)),
+                       covariance=_covariance(twist_cov, "twist_cov"))
+    return types.make("nav_msgs/msg/Odometry", header=make_header(stamp_ns=stamp_ns, frame_id=frame_id, types=types),
+                      child_frame_id=str_field(child_frame_id, "child_frame_id"), pose=pose, twist=twist)
+
+
+def odometry_to_numpy(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``nav_msgs/Odometry`` -> (T [4,4], v_linear [3], v_angular [3], pose_cov [6,6], twist_cov [6,6])."""
+    twist = msg.twist.twist
+    return (pose_to_T(msg.pose.pose), vector_field(twist.linear, "twist.linear"),
+            vector_field(twist.angular, "twist.angular"),
+            float_array(msg.pose.covariance, "pose.covariance", size=36).reshape(6, 6),
+            float_array(msg.twist.covariance, "twist.covariance", size=36).reshape(6, 6))
+
+
+def tf_message(transforms: Sequence[tuple[np.ndarray, str, str, int]], *, types: MessageTypes) -> Any:
+    """[(T_parent_child [4,4], parent, child, stamp_ns), ...] -> ``tf2_msgs/TFMessage``."""
+    stamped = []
+    for i, (T, parent, child, stamp_ns) in enumerate(transforms):
+        tr = _rigid_msgs(_transforms(T, f"transforms[{i}]", single=True)[None], types, kind="Transform")[0]
+        stamped.append(types.make("geometry_msgs/msg/TransformStamped",
+                                  header=make_header(stamp_ns=stamp_ns, frame_id=parent, types=types),
+                                  child_frame_id=str_field(child, f"transforms[{i}] child"), transform=tr))
+    return types.make("tf2_msgs/msg/TFMessage", transforms=stamped)
+
+
+def tf_message_to_list(msg: Any) -> list[tuple[np.ndarray, str, str, int]]:
+    """``tf2_msgs/TFMessage`` -> [(T_parent_child [4,4], parent, child, stamp_ns), ...]."""
+    return [(transform_to_T(t.transform), str_field(t.header.frame_id, "header.frame_id"),
+             str_field(t.child_frame_id, "child_frame_id"), stamp_to_ns(t.header.stamp)) for t in msg.transforms]
