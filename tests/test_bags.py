@@ -1,0 +1,130 @@
+"""ASL -> ROS 1 bag (rosbags) -> rosbag2 MCAP (rosbags' converter) -> one reader: nothing changes on the way."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag1 import Writer
+
+from msg_adapters.imu import samples_to_imus
+from vi3_core.dataset.asl import read_asl
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_core.errors import DataError
+from vi3_ros import cli
+from vi3_ros.io.convert import convert_to_rosbag2
+from vi3_ros.io.reader import ImageEvent, ImuEvent, iter_events, open_sequence
+from vi3_ros.io.ros1 import noetic_typestore, ros1_types, write_ros1_bag
+
+
+def _assert_same(seq, ref, *, gt_velocity_atol: float):
+    assert np.array_equal(seq.stamps_ns, ref.stamps_ns)
+    assert np.array_equal(seq.imu_ns, ref.imu_ns)
+    assert np.array_equal(seq.imu.gyro, ref.imu.gyro) and np.array_equal(seq.imu.accel, ref.imu.accel)
+    for i in range(len(ref)):
+        assert np.array_equal(seq.image(i), ref.image(i)), i
+    assert np.array_equal(seq.gt.t_ns, ref.gt.t_ns)
+    np.testing.assert_allclose(seq.gt.T_WB, ref.gt.T_WB, atol=1e-12)
+    np.testing.assert_allclose(seq.gt.v_WB, ref.gt.v_WB, atol=gt_velocity_atol)
+    assert seq.gt.bg is None and seq.gt_depth(0) is None
+
+
+def _round_trip(asl, tmp_path, *, gt_velocity_atol):
+    ref = read_asl(asl)
+    bag = write_ros1_bag(asl, tmp_path / "ros1.bag")
+    mcap = convert_to_rosbag2(bag, tmp_path / "mcap")
+    sqlite = convert_to_rosbag2(bag, tmp_path / "sqlite", storage="sqlite3")
+    assert (mcap / "metadata.yaml").is_file() and "storage_identifier: mcap" in (mcap / "metadata.yaml").read_text()
+    bare = next(mcap.glob("*.mcap"))
+    for path in (bag, mcap, sqlite, bare):
+        seq = open_sequence(path, calib=EUROC_CAM0)
+        _assert_same(seq, ref, gt_velocity_atol=gt_velocity_atol)
+    return ref, mcap
+
+
+def test_generated_round_trip(cache_dir, tmp_path):
+    ref, mcap = _round_trip(cached_sequence(cache_dir, seconds=2.0, seed=0), tmp_path, gt_velocity_atol=5e-3)
+    events = list(iter_events(mcap))
+    assert [type(e) for e in events].count(ImageEvent) == len(ref)
+    assert [type(e) for e in events].count(ImuEvent) == len(ref.imu)
+    stamps = [e.t_ns for e in events]
+    assert stamps == sorted(stamps)
+    asl_events = list(iter_events(cache_dir / "room_seed0_2s"))
+    assert [(type(e), e.t_ns) for e in asl_events] == [(type(e), e.t_ns) for e in events]
+
+
+def test_real_euroc_fixture_round_trip(euroc_fixture, tmp_path):
+    ref, mcap = _round_trip(euroc_fixture.parent, tmp_path, gt_velocity_atol=0.02)
+    assert ref.stamps_ns[0] == 1403636579763555584
+    seq = open_sequence(mcap, calib=euroc_fixture / "cam0" / "sensor.yaml")
+    np.testing.assert_allclose(seq.calib.K, ref.calib.K)
+
+
+def test_bad_bags_name_the_file_and_the_problem(cache_dir, tmp_path):
+    bag = write_ros1_bag(cached_sequence(cache_dir, seconds=2.0, seed=0), tmp_path / "ros1.bag")
+    truncated = tmp_path / "truncated.bag"
+    truncated.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    with pytest.raises(DataError, match="truncated.bag: cannot read the bag") as info:
+        open_sequence(truncated)
+    assert "index" in str(info.value).lower() or "truncated" in str(info.value)
+    mcap = convert_to_rosbag2(bag, tmp_path / "mcap")
+    data = next(mcap.glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
+    with pytest.raises(DataError, match="cut.mcap: cannot read the MCAP file"):
+        open_sequence(cut)
+    data.write_bytes(cut.read_bytes())
+    with pytest.raises(DataError, match="mcap: cannot read the bag"):
+        open_sequence(mcap)
+    with pytest.raises(DataError, match="does not exist"):
+        open_sequence(tmp_path / "missing.bag")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="not an EuRoC ASL folder .*nor a rosbag2 directory"):
+        open_sequence(tmp_path / "empty")
+
+    imu_only = tmp_path / "imu_only.bag"
+    seq = read_asl(cache_dir / "room_seed0_2s")
+    with Writer(imu_only) as writer:
+        conn = writer.add_connection("/imu0", "sensor_msgs/msg/Imu", typestore=noetic_typestore())
+        for msg, ns in zip(samples_to_imus(seq.imu.select(slice(0, 5)), frame_id="imu4", types=ros1_types()),
+                           seq.imu_ns[:5].tolist()):
+            writer.write(conn, ns, noetic_typestore().serialize_ros1(msg, conn.msgtype))
+    with pytest.raises(DataError, match=r"imu_only.bag: no sensor_msgs/msg/Image topic; topics: \{'/imu0'"):
+        open_sequence(imu_only)
+    with pytest.raises(DataError, match="topic '/cam1/image_raw' of type sensor_msgs/msg/Image not found"):
+        open_sequence(bag, image_topic="/cam1/image_raw")
+
+
+def test_make_bag_is_deterministic_and_opens(tmp_path):
+    outs = [tmp_path / "a", tmp_path / "b"]
+    for out in outs:
+        assert cli.main(["make-bag", str(out), "--seconds", "0.3", "--seed", "2", "--no-depth"]) == 0
+    a, b = outs
+    for out in outs:
+        assert (out / "asl" / "mav0" / "cam0" / "sensor.yaml").is_file() and (out / "ros1.bag").is_file()
+        assert (out / "mcap" / "metadata.yaml").is_file() and (out / "camchain-imucam.yaml").is_file()
+    pngs = sorted((a / "asl" / "mav0" / "cam0" / "data").glob("*.png"))
+    assert len(pngs) == 7
+    for png in pngs:
+        assert png.read_bytes() == (b / png.relative_to(a)).read_bytes()
+    imu = "asl/mav0/imu0/data.csv"
+    assert (a / imu).read_text() == (b / imu).read_text()
+    seq = open_sequence(a)  # a make-bag folder opens as its MCAP, with the camchain beside it
+    np.testing.assert_allclose(seq.calib.T_BC, EUROC_CAM0.T_BC, atol=1e-12)
+    assert np.array_equal(seq.image(6), read_asl(a / "asl").image(6))
+    assert cli.main(["make-bag", str(a), "--seconds", "0.3", "--seed", "3", "--no-depth"]) == 2
+    assert cli.main(["make-bag", str(a), "--seconds", "0.3", "--seed", "3", "--no-depth", "--overwrite"]) == 0
+    assert (a / pngs[0].relative_to(a)).read_bytes() != (b / pngs[0].relative_to(a)).read_bytes()
+
+
+def test_bundled_bag_is_the_make_bag_sequence(cache_dir):
+    """bags/vi3_demo is the MCAP of ``vi3 make-bag --seconds 1.8 --seed 0``: regenerating it gives the same data."""
+    path = Path(__file__).resolve().parents[1] / "bags" / "vi3_demo"
+    seq = open_sequence(path)
+    assert sum(f.stat().st_size for f in path.parent.rglob("*") if f.is_file()) <= 15e6
+    assert len(seq) == 37 and seq.calib is not None and seq.gt is not None
+    fresh = read_asl(cached_sequence(cache_dir, seconds=1.8, seed=0, with_depth=False))
+    assert np.array_equal(seq.stamps_ns, fresh.stamps_ns) and np.array_equal(seq.imu.gyro, fresh.imu.gyro)
+    for i in (0, 18, 36):
+        assert np.array_equal(seq.image(i), fresh.image(i))

@@ -1,0 +1,200 @@
+"""Camera calibration: intrinsics, distortion and the camera pose in the body (IMU) frame.
+
+Two file formats are read (detected by content):
+
+- EuRoC ``cam0/sensor.yaml``: ``intrinsics: [fu, fv, cu, cv]``, ``distortion_model: radial-tangential``,
+  ``distortion_coefficients: [k1, k2, p1, p2]``, ``resolution: [w, h]``, ``T_BS`` (camera pose in the body frame).
+- Kalibr ``camchain-imucam.yaml``: ``camN: {intrinsics, distortion_model: radtan | equidistant | none,
+  distortion_coeffs, resolution, T_cam_imu}``; ``T_cam_imu`` maps IMU points into the camera, so ``T_BC`` is its
+  inverse.
+
+Undistortion keeps the raw intrinsics ``K`` for the undistorted pinhole image (same size): with EuRoC's barrel
+distortion every undistorted pixel then has a source pixel inside the raw image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from vi3_core import so3
+from vi3_core.errors import CalibrationError
+
+DIST_MODELS = ("radtan", "equidistant", "none")
+_EUROC_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "equidistant": "equidistant", "none": "none"}
+
+
+@dataclass(frozen=True)
+class Undistorter:
+    """Remaps a raw (distorted) image onto the pinhole image of intrinsics ``K`` [3,3] (same size).
+
+    map_x, map_y: [H,W] float32 raw-pixel coordinates of each undistorted pixel centre.
+    """
+
+    K: np.ndarray
+    map_x: np.ndarray
+    map_y: np.ndarray
+
+    def apply(self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+        """Undistorted copy of ``image`` [H,W] or [H,W,C] (same dtype)."""
+        return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT)
+
+
+@dataclass(frozen=True)
+class CameraCalib:
+    """One camera: K [3,3] raw intrinsics, distortion ``dist_model`` with coefficients ``dist`` [k],
+    size (width, height) in pixels, ``T_BC`` [4,4] camera pose in the body (IMU) frame, frame rate in Hz."""
+
+    K: np.ndarray
+    dist_model: str
+    dist: np.ndarray
+    size: tuple[int, int]
+    T_BC: np.ndarray
+    rate_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.dist_model not in DIST_MODELS:
+            raise CalibrationError(f"distortion model {self.dist_model!r} is not one of {DIST_MODELS}")
+        expected = {"radtan": 4, "equidistant": 4, "none": 0}[self.dist_model]
+        if len(self.dist) != expected:
+            raise CalibrationError(f"{self.dist_model} distortion needs {expected} coefficients, got {len(self.dist)}")
+
+    def undistorter(self) -> Undistorter:
+        """Built once per calibration (cached): maps from the undistorted pinhole image to the raw image."""
+        cached = self.__dict__.get("_undistorter")
+        if cached is None:
+            cached = self.__dict__["_undistorter"] = self._build_undistorter()
+        return cached
+
+    def _build_undistorter(self) -> Undistorter:
+        w, h = self.size
+        K = self.K.copy()
+        if self.dist_model == "equidistant":
+            mx, my = cv2.fisheye.initUndistortRectifyMap(self.K, self.dist, np.eye(3), K, (w, h), cv2.CV_32FC1)
+        else:
+            mx, my = cv2.initUndistortRectifyMap(self.K, self._cv_dist, None, K, (w, h), cv2.CV_32FC1)
+        return Undistorter(K, mx, my)
+
+    @property
+    def _cv_dist(self) -> np.ndarray:
+        return self.dist if self.dist_model == "radtan" else np.zeros(4)
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Normalised undistorted image coordinates [N,2] -> raw pixel coordinates [N,2]."""
+        pts = np.concatenate([xy, np.ones((len(xy), 1))], 1).reshape(-1, 1, 3).astype(np.float64)
+        if self.dist_model == "equidistant":
+            out = cv2.fisheye.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)[0]
+        else:
+            out = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self._cv_dist)[0]
+        return out.reshape(-1, 2)
+
+    def undistort_points(self, uv: np.ndarray) -> np.ndarray:
+        """Raw pixel coordinates [N,2] -> normalised undistorted coordinates [N,2] (iterated to 1e-12)."""
+        pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+        if self.dist_model == "equidistant":
+            out = cv2.fisheye.undistortPoints(pts, self.K, self.dist, criteria=crit)
+        else:
+            out = cv2.undistortPoints(pts, self.K, self._cv_dist, criteria=crit)
+        return out.reshape(-1, 2)
+
+
+def _matrix(value, name: str, path: Path) -> np.ndarray:
+    """A 4x4 matrix from EuRoC's {rows, cols, data} or Kalibr's nested list."""
+    data = value.get("data") if isinstance(value, dict) else value
+    try:
+        T = np.asarray(data, dtype=np.float64).reshape(4, 4)
+    except (TypeError, ValueError) as err:
+        raise CalibrationError(f"{path}: {name} is not a 4x4 matrix ({err})") from None
+    if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
+        raise CalibrationError(f"{path}: {name} is not a rigid transform:\n{T}")
+    return T
+
+
+def _build(entry: dict, *, intr_key: str, dist_key: str, T_BC: np.ndarray, path: Path) -> CameraCalib:
+    for key in (intr_key, "resolution"):
+        if key not in entry:
+            raise CalibrationError(f"{path}: missing {key!r}")
+    if entry.get("camera_model", "pinhole") != "pinhole":
+        raise CalibrationError(f"{path}: camera_model {entry['camera_model']!r} is not supported (pinhole only)")
+    fu, fv, cu, cv = (float(x) for x in entry[intr_key])
+    model = _EUROC_MODELS.get(str(entry.get("distortion_model", "none")))
+    if model is None:
+        raise CalibrationError(f"{path}: distortion_model {entry['distortion_model']!r} is not one of "
+                               f"{sorted(_EUROC_MODELS)}")
+    dist = np.asarray(entry.get(dist_key, []) or [], dtype=np.float64)
+    w, h = (int(x) for x in entry["resolution"])
+    rate = entry.get("rate_hz")
+    K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
+    try:
+        return CameraCalib(K, model, dist, (w, h), T_BC, None if rate is None else float(rate))
+    except CalibrationError as err:
+        raise CalibrationError(f"{path}: {err}") from None
+
+
+def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
+    """Read an EuRoC ``sensor.yaml`` or a Kalibr camchain(-imucam) YAML (``camera`` picks the Kalibr entry)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: calibration file does not exist")
+    # EuRoC ships some files with OpenCV's "%YAML:1.0" directive, which PyYAML rejects.
+    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("%YAML"))
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise CalibrationError(f"{path}: not valid YAML ({err})") from None
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{path}: expected a YAML mapping, got {type(doc).__name__}")
+    if "T_BS" in doc:
+        if doc.get("sensor_type", "camera") != "camera":
+            raise CalibrationError(f"{path}: sensor_type is {doc['sensor_type']!r}, not a camera")
+        return _build(doc, intr_key="intrinsics", dist_key="distortion_coefficients",
+                      T_BC=_matrix(doc["T_BS"], "T_BS", path), path=path)
+    if isinstance(doc.get(camera), dict):
+        entry = doc[camera]
+        if "T_cam_imu" not in entry:
+            raise CalibrationError(f"{path}: {camera} has no T_cam_imu (a camchain without IMU extrinsics)")
+        T_BC = so3.inv_T(_matrix(entry["T_cam_imu"], f"{camera}.T_cam_imu", path))
+        return _build(entry, intr_key="intrinsics", dist_key="distortion_coeffs", T_BC=T_BC, path=path)
+    raise CalibrationError(f"{path}: neither an EuRoC sensor.yaml (no T_BS) nor a Kalibr camchain "
+                           f"(no {camera!r} entry); top-level keys: {sorted(doc)}")
+
+
+def write_euroc_sensor_yaml(calib: CameraCalib, path, *, comment: str = "") -> None:
+    """Write ``calib`` as an EuRoC ``cam0/sensor.yaml`` (radtan or none distortion)."""
+    if calib.dist_model == "equidistant":
+        raise CalibrationError(f"{path}: EuRoC sensor.yaml has no equidistant model; write a Kalibr camchain")
+    K = calib.K
+    doc = {
+        "sensor_type": "camera",
+        "comment": comment,
+        "T_BS": {"cols": 4, "rows": 4, "data": [float(x) for x in calib.T_BC.reshape(-1)]},
+        "rate_hz": calib.rate_hz,
+        "resolution": list(calib.size),
+        "camera_model": "pinhole",
+        "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
+        "distortion_model": "radial-tangential" if calib.dist_model == "radtan" else "none",
+        "distortion_coefficients": [float(x) for x in calib.dist],
+    }
+    Path(path).write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
+
+
+def write_kalibr_camchain(calib: CameraCalib, path, *, camera: str = "cam0", rostopic: str = "/cam0/image_raw") -> None:
+    """Write ``calib`` as a Kalibr ``camchain-imucam.yaml`` (``T_cam_imu`` = inverse of ``T_BC``)."""
+    K = calib.K
+    entry = {
+        "T_cam_imu": so3.inv_T(calib.T_BC).tolist(),
+        "cam_overlaps": [],
+        "camera_model": "pinhole",
+        "distortion_coeffs": [float(x) for x in calib.dist],
+        "distortion_model": calib.dist_model,
+        "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
+        "resolution": list(calib.size),
+        "rostopic": rostopic,
+        "timeshift_cam_imu": 0.0,
+    }
+    Path(path).write_text(yaml.safe_dump({camera: entry}, sort_keys=False, default_flow_style=None))

@@ -1,0 +1,151 @@
+"""A recorded visual-inertial sequence (whatever file it came from), its ground truth, and clips cut from it."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from vi3_core import so3
+from vi3_core.dataset.calib import CameraCalib
+from vi3_core.errors import DataError
+from vi3_core.types import Clip, GroundTruth, ImuSamples
+
+G_W = np.array([0.0, 0.0, -9.81])
+
+
+@dataclass
+class GroundTruthTrack:
+    """Body states in the world W (z up): t [M] s; T_WB [M,4,4]; v_WB [M,3] m/s; bg, ba [M,3] (or None);
+    t_ns: [M] int64 stamps as recorded (derived from t when not given).
+
+    When velocities are absent (bags carry poses only) they are derived from the positions by second-order
+    central differences on the (possibly non-uniform) stamps, ``numpy.gradient``; biases then stay None.
+    """
+
+    t: np.ndarray
+    T_WB: np.ndarray
+    v_WB: np.ndarray | None = None
+    bg: np.ndarray | None = None
+    ba: np.ndarray | None = None
+    g_W: np.ndarray = field(default_factory=lambda: G_W.copy())
+    t_ns: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.t = np.asarray(self.t, dtype=np.float64)
+        if self.t_ns is None:
+            self.t_ns = np.round(self.t * 1e9).astype(np.int64)
+        if len(self.t) < 2 or np.any(np.diff(self.t) <= 0):
+            raise DataError(f"ground truth needs >= 2 strictly increasing stamps, got {len(self.t)}")
+        if self.v_WB is None:
+            self.v_WB = np.gradient(self.T_WB[:, :3, 3], self.t, axis=0)
+        self._slerp = Slerp(self.t, Rotation.from_matrix(self.T_WB[:, :3, :3]))
+
+    def covers(self, t: np.ndarray) -> bool:
+        """Whether every stamp of t lies within the track."""
+        return bool(len(t)) and self.t[0] <= np.min(t) and np.max(t) <= self.t[-1]
+
+    def _lerp(self, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return np.stack([np.interp(t, self.t, values[:, k]) for k in range(values.shape[1])], 1)
+
+    def at(self, t: np.ndarray, *, depth: np.ndarray | None = None) -> GroundTruth:
+        """Ground truth at stamps t [n] (slerp for rotations, linear otherwise); biases averaged over [t0, tn].
+
+        Biases are NaN when the track has none. Raises DataError when a stamp lies outside the track.
+        """
+        t = np.asarray(t, dtype=np.float64)
+        if not self.covers(t):
+            raise DataError(f"stamps [{t.min():.6f}, {t.max():.6f}] s lie outside the ground truth "
+                            f"[{self.t[0]:.6f}, {self.t[-1]:.6f}] s")
+        T = so3.make_T(self._slerp(t).as_matrix(), self._lerp(self.T_WB[:, :3, 3], t))
+
+        def bias(b):
+            return np.full(3, np.nan) if b is None else self._lerp(b, t).mean(0)
+
+        return GroundTruth(T_WB=T, v_WB=self._lerp(self.v_WB, t), bg=bias(self.bg), ba=bias(self.ba),
+                           g_W=self.g_W.copy(), depth=depth)
+
+
+@dataclass
+class Sequence:
+    """Camera frames, IMU and optional ground truth of one recording.
+
+    stamps: [N] cam0 stamps, float64 s; stamps_ns: [N] the same stamps as recorded, int64 ns; imu: all IMU
+    samples (imu_ns: their int64 ns stamps); calib: cam0 calibration (None when the source has none);
+    gt: ground-truth track (None when absent). Images and depth are loaded on demand by ``load_image(i)``
+    (raw mono8 [H,W] uint8, as recorded) and ``load_depth(i)`` (z-depth of the undistorted image, or None).
+    """
+
+    name: str
+    stamps: np.ndarray
+    imu: ImuSamples
+    calib: CameraCalib | None
+    gt: GroundTruthTrack | None
+    load_image: Callable[[int], np.ndarray] = field(repr=False)
+    load_depth: Callable[[int], np.ndarray | None] | None = field(default=None, repr=False)
+    stamps_ns: np.ndarray | None = None
+    imu_ns: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def image(self, i: int) -> np.ndarray:
+        """Raw (distorted, as recorded) uint8 [H,W] mono8 image of frame i."""
+        return self.load_image(int(i))
+
+    def gt_depth(self, i: int) -> np.ndarray | None:
+        """[H,W] float32 z-depth (m) of the UNDISTORTED image of frame i, NaN where invalid; None if unknown."""
+        return None if self.load_depth is None else self.load_depth(int(i))
+
+
+def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0) -> Clip:
+    """The clip of frames ``indices`` [n]: undistorted images, ``calib.undistorter().K``, ``T_BC``, the IMU window
+    with >= 1 sample beyond each end, ``imu_history`` (the ``history_s`` seconds before the clip, plus the clip),
+    and ground truth at the stamps when the track covers them (depth maps included when ``with_depth``)."""
+    if seq.calib is None:
+        raise DataError(f"sequence {seq.name!r} has no camera calibration; cannot undistort its images")
+    idx = np.asarray(indices, dtype=np.int64)
+    if idx.ndim != 1 or len(idx) == 0 or idx.min() < 0 or idx.max() >= len(seq):
+        raise DataError(f"clip indices {idx.tolist()} out of range for {len(seq)} frames of {seq.name!r}")
+    stamps = seq.stamps[idx]
+    und = seq.calib.undistorter()
+    images = np.stack([und.apply(seq.image(i)) for i in idx])
+    imu = seq.imu.window(stamps[0], stamps[-1], margin=1)
+    if len(imu) == 0 or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
+        raise DataError(f"IMU of {seq.name!r} does not cover the clip [{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
+    gt = None
+    if seq.gt is not None and seq.gt.covers(stamps):
+        depth = None
+        if with_depth and seq.load_depth is not None:
+            depth = np.stack([seq.gt_depth(i) for i in idx])
+        gt = seq.gt.at(stamps, depth=depth)
+    history = seq.imu.window(stamps[0] - history_s, stamps[-1], margin=1)
+    return Clip(stamps=stamps, images=images, K=und.K.copy(), T_BC=seq.calib.T_BC.copy(), imu=imu, gt=gt,
+                imu_history=history)
+
+
+def sample_clips(n_total: int, *, n: int = 8, stride: int = 2, mode: str = "paper",
+                 hop: int | None = None) -> list[np.ndarray]:
+    """Frame indices of clips of ``n`` frames ``stride`` apart in a sequence of ``n_total`` frames.
+
+    "paper": three clips at the start, middle and end of the sequence (as in the paper's evaluation);
+    "sliding": a clip every ``hop`` frames (default n * stride, i.e. back to back). Each entry is [n] int64.
+    """
+    span = (n - 1) * stride + 1
+    if n < 1 or stride < 1:
+        raise ValueError(f"n and stride must be >= 1, got n={n}, stride={stride}")
+    if span > n_total:
+        raise DataError(f"a clip of {n} frames at stride {stride} spans {span} frames; the sequence has {n_total}")
+    offsets = np.arange(n, dtype=np.int64) * stride
+    if mode == "paper":
+        starts = sorted({0, (n_total - span) // 2, n_total - span})
+    elif mode == "sliding":
+        step = hop if hop is not None else n * stride
+        if step < 1:
+            raise ValueError(f"hop must be >= 1, got {hop}")
+        starts = range(0, n_total - span + 1, step)
+    else:
+        raise ValueError(f"unknown clip sampling mode {mode!r}; choose 'paper' or 'sliding'")
+    return [s + offsets for s in starts]

@@ -1,0 +1,241 @@
+"""One reader for every way an EuRoC-style recording arrives: an ASL folder (``mav0/`` or its parent), a ROS 1
+``.bag``, a rosbag2 directory (sqlite3 or MCAP, with ``metadata.yaml``) or a bare ``.mcap`` file.
+
+Bags are read with rosbags (``AnyReader``; bare MCAP files through the ``mcap`` package and the rosbags Jazzy
+typestore's CDR deserialiser) and decoded with ``msg_adapters``. Topics default to EuRoC's (``/cam0/image_raw``,
+``/imu0``, ``/vicon/firefly_sbx/firefly_sbx``) or else the only topic of the right type.
+
+Bags carry no calibration (EuRoC's carry no CameraInfo): pass ``calib=`` (a ``CameraCalib`` or a path to a
+Kalibr camchain-imucam / EuRoC sensor.yaml), or leave a ``*camchain-imucam*.yaml`` next to the bag or inside
+the rosbag2 directory (``vi3 make-bag`` writes one). A ``vi3 make-bag`` output folder opens as its rosbag2
+MCAP. Ground truth from a bag is poses only: velocities are derived from them (``GroundTruthTrack``: central
+differences) and biases are unknown.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msg_adapters.image import image_to_numpy
+from msg_adapters.imu import imu_to_sample
+from msg_adapters.poses import transform_to_T
+from msg_adapters.stamps import stamp_to_ns
+from msg_adapters.types import jazzy_types
+from vi3_core.dataset.asl import find_mav0, read_asl
+from vi3_core.dataset.calib import CameraCalib, load_calib
+from vi3_core.dataset.sequence import GroundTruthTrack, Sequence
+from vi3_core.errors import DataError
+from vi3_core.types import ImuSamples
+from vi3_ros.io import topics
+
+
+@dataclass(frozen=True)
+class ImageEvent:
+    """One camera frame: stamp (float64 s and int ns) and the raw image [H,W] (mono) or [H,W,3] uint8."""
+
+    t: float
+    t_ns: int
+    image: np.ndarray
+
+
+@dataclass(frozen=True)
+class ImuEvent:
+    """One IMU sample: stamp, gyro [3] rad/s, accel [3] m/s^2, orientation [4] (x, y, z, w) or None."""
+
+    t: float
+    t_ns: int
+    gyro: np.ndarray
+    accel: np.ndarray
+    orientation: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class _GtEvent:
+    t_ns: int
+    T_WB: np.ndarray
+
+
+# ------------------------------------------------------------------------------------------- bag access
+def _resolve(path) -> tuple[Path, str]:
+    """(path to read, kind): "asl", "rosbag1", "rosbag2" or "mcap". A ``vi3 make-bag`` folder reads its MCAP."""
+    path = Path(path)
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file():
+            return path, "rosbag2"
+        if (path / "mcap" / "metadata.yaml").is_file():
+            return path / "mcap", "rosbag2"
+        try:
+            find_mav0(path)
+        except DataError as err:
+            raise DataError(f"{err}; nor a rosbag2 directory (no metadata.yaml)") from None
+        return path, "asl"
+    if not path.exists():
+        raise DataError(f"{path}: does not exist")
+    if path.suffix == ".bag":
+        return path, "rosbag1"
+    if path.suffix == ".mcap":
+        return path, "mcap"
+    raise DataError(f"{path}: not an ASL folder, ROS 1 .bag, rosbag2 directory, .mcap file or make-bag folder")
+
+
+def _pick(path: Path, available: dict[str, str], msgtype: str, preferred: str | None, explicit: str | None,
+          *, required: bool) -> str | None:
+    """The topic to read for ``msgtype``: ``explicit``, else ``preferred`` when present, else the only candidate."""
+    if explicit is not None:
+        if available.get(explicit) != msgtype:
+            raise DataError(f"{path}: topic {explicit!r} of type {msgtype} not found; topics: {available}")
+        return explicit
+    cands = sorted(t for t, ty in available.items() if ty == msgtype)
+    if preferred in cands:
+        return preferred
+    if len(cands) == 1:
+        return cands[0]
+    if required:
+        what = "no" if not cands else f"several ({cands}; choose one with a topic option)"
+        raise DataError(f"{path}: {what} {msgtype} topic; topics: {available}")
+    return None
+
+
+def _normalise(msgtype: str) -> str:
+    """"sensor_msgs/Image" (ROS 1 style) -> "sensor_msgs/msg/Image"."""
+    parts = msgtype.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
+
+
+def _bag_messages(path: Path, kind: str, want: dict[str, str | None], *, required: tuple[str, ...]):
+    """Yield (role, msg) in record order for the roles in ``want`` (role -> explicit topic or None)."""
+    roles = {"image": (topics.IMAGE_TYPE, topics.IMAGE_TOPIC), "imu": (topics.IMU_TYPE, topics.IMU_TOPIC),
+             "gt": (topics.GT_TYPE, topics.GT_TOPIC)}
+    if kind == "mcap":
+        yield from _mcap_messages(path, roles, want, required)
+        return
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    try:
+        with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
+            available = {c.topic: _normalise(c.msgtype) for c in reader.connections}
+            chosen = {_pick(path, available, roles[r][0], roles[r][1], want.get(r), required=r in required): r
+                      for r in want}
+            chosen.pop(None, None)
+            conns = [c for c in reader.connections if c.topic in chosen]
+            for conn, _, raw in reader.messages(connections=conns):
+                yield chosen[conn.topic], reader.deserialize(raw, conn.msgtype)
+    except AnyReaderError as err:
+        raise DataError(f"{path}: cannot read the bag (truncated, unindexed or not a bag?): {err}") from err
+
+
+def _mcap_messages(path: Path, roles, want, required):
+    """A bare .mcap file (no metadata.yaml): the mcap package reads it, the Jazzy typestore decodes CDR."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    store = jazzy_types().typestore
+    try:
+        with path.open("rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is None:
+                raise DataError(f"{path}: MCAP file has no summary section (truncated or unindexed)")
+            available = {ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
+            chosen = {_pick(path, available, roles[r][0], roles[r][1], want.get(r), required=r in required): r
+                      for r in want}
+            chosen.pop(None, None)
+            for schema, channel, message in reader.iter_messages(topics=list(chosen), log_time_order=True):
+                yield chosen[channel.topic], store.deserialize_cdr(message.data, schema.name)
+    except McapError as err:
+        raise DataError(f"{path}: cannot read the MCAP file: {err}") from err
+
+
+def _decode(role: str, msg):
+    ns = stamp_to_ns(msg.header.stamp)
+    if role == "image":
+        image = image_to_numpy(msg)
+        return ImageEvent(ns * 1e-9, ns, image[..., 0] if image.ndim == 3 and image.shape[2] == 1 else image)
+    if role == "imu":
+        s = imu_to_sample(msg)
+        return ImuEvent(ns * 1e-9, ns, s.gyro, s.accel, s.orientation)
+    return _GtEvent(ns, transform_to_T(msg.transform))
+
+
+def _events(path: Path, kind: str, want: dict[str, str | None]):
+    for role, msg in _bag_messages(path, kind, want, required=("image", "imu")):
+        yield _decode(role, msg)
+
+
+# ------------------------------------------------------------------------------------------- public API
+def iter_events(path, *, image_topic: str | None = None, imu_topic: str | None = None
+                ) -> Iterator[ImageEvent | ImuEvent]:
+    """Time-ordered camera frames and IMU samples of any supported recording (images decoded lazily)."""
+    path, kind = _resolve(path)
+    if kind != "asl":
+        yield from _events(path, kind, {"image": image_topic, "imu": imu_topic})
+        return
+    seq = read_asl(path)
+    order = sorted([(int(k), 0, i) for i, k in enumerate(seq.stamps_ns.tolist())]
+                   + [(int(k), 1, i) for i, k in enumerate(seq.imu_ns.tolist())])
+    for ns, which, i in order:
+        if which == 0:
+            yield ImageEvent(ns * 1e-9, ns, seq.image(i))
+        else:
+            yield ImuEvent(ns * 1e-9, ns, seq.imu.gyro[i], seq.imu.accel[i])
+
+
+def find_calib(path) -> Path | None:
+    """A Kalibr ``*camchain-imucam*.yaml`` in a rosbag2 directory, beside a bag, or beside its directory."""
+    path = Path(path).resolve()
+    for folder in ((path,) if path.is_dir() else ()) + (path.parent, path.parent.parent):
+        found = sorted(folder.glob("*camchain-imucam*.yaml"))
+        if found:
+            return found[0]
+    return None
+
+
+def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_topic: str | None = None,
+                  imu_topic: str | None = None, gt_topic: str | None = None) -> Sequence:
+    """Open any supported recording as a ``Sequence``.
+
+    ASL folders load images and depth lazily; bags are read once into memory (images as uint8 arrays).
+    ``calib`` overrides or supplies the calibration (bags have none of their own; see the module docstring).
+    """
+    path, kind = _resolve(path)
+    if isinstance(calib, (str, Path)):
+        calib = load_calib(calib)
+    if kind == "asl":
+        seq = read_asl(path)
+        if calib is not None:
+            seq.calib = calib
+        return seq
+    if calib is None and (found := find_calib(path)) is not None:
+        calib = load_calib(found)
+    images: list[ImageEvent] = []
+    imus: list[ImuEvent] = []
+    gts: list[_GtEvent] = []
+    sink = {ImageEvent: images, ImuEvent: imus, _GtEvent: gts}
+    for ev in _events(path, kind, {"image": image_topic, "imu": imu_topic, "gt": gt_topic}):
+        sink[type(ev)].append(ev)
+    if not images:
+        raise DataError(f"{path}: the image topic has no messages")
+    images.sort(key=lambda e: e.t_ns)
+    imus.sort(key=lambda e: e.t_ns)
+    cam_ns = np.array([e.t_ns for e in images], dtype=np.int64)
+    imu_ns = np.array([e.t_ns for e in imus], dtype=np.int64)
+    imu = ImuSamples(imu_ns * 1e-9, np.array([e.gyro for e in imus]).reshape(-1, 3),
+                     np.array([e.accel for e in imus]).reshape(-1, 3))
+    gt = None
+    if len(gts) >= 2:
+        gts.sort(key=lambda e: e.t_ns)
+        gt_ns = np.array([e.t_ns for e in gts], dtype=np.int64)
+        gt = GroundTruthTrack(gt_ns * 1e-9, np.stack([e.T_WB for e in gts]), t_ns=gt_ns)
+    frames = [e.image for e in images]
+    name = path.stem if kind != "rosbag2" else path.name
+    return Sequence(name=name, stamps=cam_ns * 1e-9, imu=imu, calib=calib, gt=gt,
+                    load_image=functools.partial(_frame, frames), stamps_ns=cam_ns, imu_ns=imu_ns)
+
+
+def _frame(frames: list[np.ndarray], i: int) -> np.ndarray:
+    return frames[i]
