@@ -21,18 +21,13 @@ from vi3_core.dataset import asl
 from vi3_core.dataset.calib import CameraCalib
 from vi3_core.render.raycast import Renderer
 from vi3_core.render.scene import make_scene
+from vi3_core.sim import euroc
 from vi3_core.sim.imu import ImuNoise, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
 
 #: EuRoC cam0 (MH_01 ``cam0/sensor.yaml``): intrinsics, radial-tangential distortion, T_BS, 752x480 @ 20 Hz.
-EUROC_CAM0 = CameraCalib(
-    K=np.array([[458.654, 0.0, 367.215], [0.0, 457.296, 248.375], [0.0, 0.0, 1.0]]),
-    dist_model="radtan", dist=np.array([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]), size=(752, 480),
-    T_BC=np.array([[0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-                   [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-                   [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-                   [0.0, 0.0, 0.0, 1.0]]),
-    rate_hz=20.0)
+EUROC_CAM0 = CameraCalib(K=euroc.K_cam0(), dist_model="radtan", dist=np.array(euroc.DISTORTION_CAM0),
+                         size=euroc.RESOLUTION_CAM0, T_BC=euroc.T_BS_CAM0.copy(), rate_hz=euroc.CAMERA_RATE_HZ)
 
 T0_NS = 1_700_000_000_000_000_000  # first camera stamp (ns): EuRoC-like epoch stamps
 CAM_PERIOD_NS = 50_000_000  # 20 Hz

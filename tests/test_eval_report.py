@@ -1,0 +1,160 @@
+"""Report, JSON, plot and TUM export on clip evaluations built from known geometry (no backbone needed)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from vi3_core import so3
+from vi3_core.eval import metrics, plot, report, tum
+from vi3_core.eval.clip_eval import ClipEval
+from vi3_core.types import AnchorResult, Geometry, ImuTrajectory, InitResult, InitStatus
+
+N, H, W = 6, 24, 32
+K = np.array([[20.0, 0, 16.0], [0, 20.0, 12.0], [0, 0, 1]])
+
+
+def _geometry(T: np.ndarray, depth: np.ndarray) -> Geometry:
+    return Geometry(T_wc=T, K=np.tile(K, (len(T), 1, 1)), depth=depth.astype(np.float32),
+                    conf=np.ones_like(depth, dtype=np.float32))
+
+
+def _scaled(T: np.ndarray, s: float) -> np.ndarray:
+    T = T.copy()
+    T[:, :3, 3] *= s
+    return T
+
+
+def make_clip_eval(seed: int, *, ok: bool = True, base_scale: float = 0.4, vi3_scale: float = 1.05) -> ClipEval:
+    rng = np.random.default_rng(seed)
+    p = np.column_stack([np.linspace(0, 1.0, N), 0.2 * np.sin(np.linspace(0, 2, N)), np.zeros(N)])
+    T_gt = so3.relative_to_first(so3.make_T(so3.exp(rng.normal(scale=0.05, size=(N, 3))), p))
+    depth_gt = rng.uniform(1.0, 5.0, size=(N, H, W))
+    base = _geometry(_scaled(T_gt, base_scale), base_scale * depth_gt)
+    vi3 = _geometry(_scaled(T_gt, vi3_scale), vi3_scale * depth_gt)
+    target = ImuTrajectory(R=T_gt[:, :3, :3], p=p, v=np.zeros((N, 3)), T_wc=_scaled(T_gt, 0.98))
+    status = InitStatus.OK if ok else InitStatus.UNOBSERVABLE
+    g_true = np.array([-9.81, 0.0, 0.0])
+    init = InitResult(status=status, reason="" if ok else "too little acceleration", g=g_true + [0, 0.1, 0],
+                      v1=np.array([0.0, 0.0, 1.1]), scale=vi3_scale / base_scale, target=target if ok else None)
+    result = AnchorResult(geometry=vi3 if ok else base, base=base, init=init, mode="init" if ok else "none",
+                          alpha=init.scale, target=target if ok else None)
+    columns = {"base": metrics.geometry_metrics(base.T_wc, T_gt, base.depth, depth_gt)}
+    if ok:
+        columns["init"] = metrics.geometry_metrics(vi3.T_wc, T_gt, vi3.depth, depth_gt)
+    gt_init = metrics.InitMetrics(gravity_err_deg=0.6, gyro_bias_err=0.002, gyro_bias_rel=0.1, v1_dir_deg=2.0,
+                                  v1_mag_err=0.1, v1_mag_ratio=1.1)
+    return ClipEval(indices=np.arange(10 * seed, 10 * seed + 2 * N, 2), stamps=0.1 * np.arange(N) + seed,
+                    status=status.value, reason=init.reason, mode=result.mode, T_gt=T_gt,
+                    down_c1=np.array([0.0, 1.0, 0.0]), result=result, fast=None, columns=columns,
+                    init_metrics=gt_init)
+
+
+@pytest.fixture(scope="module")
+def evals() -> list[ClipEval]:
+    return [make_clip_eval(1), make_clip_eval(2), make_clip_eval(3, ok=False)]
+
+
+def test_summary_has_the_issue_keys_finite_and_paper_medians(evals) -> None:
+    s = report.summarise(evals, mode="init", backbone="test", sequence="constructed")
+    assert s["n_clips"] == 3 and s["n_ok"] == 2
+    assert s["status_counts"] == {"ok": 2, "unobservable": 1, "rejected": 0}
+    for block in ("base", "vi3"):
+        assert set(s[block]) == {"trans_rmse_m", "rot_deg", "scale_traj", "absrel", "delta125", "scale_depth"}
+        assert all(np.isfinite(v) for v in s[block].values())
+    assert {"gravity_err_deg", "gyro_bias_err", "v1_dir_deg", "v1_mag_err"} <= set(s["init"])
+    assert s["base"]["scale_traj"] == pytest.approx(0.4) and s["base"]["scale_depth"] == pytest.approx(0.4)
+    assert s["vi3"]["scale_traj"] == pytest.approx(1.05) and s["vi3"]["delta125"] == pytest.approx(1.0)
+    assert s["base"]["delta125"] == 0.0 and s["vi3"]["absrel"] == pytest.approx(0.0, abs=1e-6)
+    # JSON round trip, with no NaN tokens
+    assert json.loads(report.to_json(s))["vi3"] == s["vi3"]
+
+
+def test_missing_values_are_null_not_nan() -> None:
+    s = report.summarise([make_clip_eval(4, ok=False)], mode="ttr")
+    assert all(v is None for v in s["vi3"].values())
+    assert "NaN" not in report.to_json(s)
+
+
+def test_tables_show_base_and_vi3_columns(evals) -> None:
+    text = report.format_tables(report.summarise(evals, mode="init"))
+    header = next(line for line in text.splitlines() if line.startswith("Metric"))
+    assert header.split()[1:] == ["Base", "IMU-init"]
+    scale_row = next(line for line in text.splitlines() if line.startswith("Scale (Traj.)"))
+    assert scale_row.split()[-2:] == ["0.40", "1.05"]
+    assert "unobservable 1" in text
+
+
+def test_ablation_table_lists_variants(evals) -> None:
+    s = report.summarise(evals, mode="init")
+    text = report.format_ablation({"TLS": s, "OLS": s})
+    assert [line.split()[0] for line in text.splitlines()[-2:]] == ["TLS", "OLS"]
+
+
+def _has_colour(img: np.ndarray, rgb: tuple[float, float, float], tol: float = 0.06, min_px: int = 30) -> bool:
+    return int((np.abs(img[..., :3] - np.asarray(rgb)) < tol).all(axis=-1).sum()) >= min_px
+
+
+def test_plot_is_a_png_with_the_four_trajectory_colours(tmp_path, evals) -> None:
+    path = plot.save_plot(tmp_path / "eval.png", evals[:1], title="constructed")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    img = imread(path)
+    assert img.shape[0] > 300 and img.shape[1] > 600
+    from matplotlib.colors import to_rgb
+    for name in ("gt", "base", "imu", "vi3"):
+        assert _has_colour(img, to_rgb(plot.COLORS[name])), f"{name} ({plot.COLORS[name]}) not drawn"
+
+
+def test_plot_without_vi3_has_no_green(tmp_path) -> None:
+    from matplotlib.colors import to_rgb
+    img = imread(plot.save_plot(tmp_path / "fail.png", [make_clip_eval(5, ok=False)]))
+    assert _has_colour(img, to_rgb(plot.COLORS["base"]))
+    assert not _has_colour(img, to_rgb(plot.COLORS["vi3"]), min_px=1)
+
+
+def test_backproject_puts_points_at_depth_along_rays() -> None:
+    T = np.tile(np.eye(4), (1, 1, 1))
+    g = _geometry(T, np.full((1, H, W), 2.0))
+    pts = plot.backproject(g, step=1)
+    assert pts.shape == (H * W, 3)
+    np.testing.assert_allclose(pts[:, 2], 2.0)
+    np.testing.assert_allclose(pts[0], [(0 - 16.0) / 20.0 * 2.0, (0 - 12.0) / 20.0 * 2.0, 2.0])
+
+
+def test_ground_basis_is_orthonormal_and_horizontal() -> None:
+    down = np.array([0.1, 0.95, 0.2])
+    B = plot.ground_basis(down)
+    np.testing.assert_allclose(B @ B.T, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(B @ down, 0.0, atol=1e-12)
+
+
+def test_tum_round_trip_and_export(tmp_path, evals) -> None:
+    e = evals[0]
+    stamps, T = tum.read_tum(tum.write_tum(tmp_path / "x.txt", e.stamps, e.T_gt))
+    np.testing.assert_allclose(stamps, e.stamps)
+    np.testing.assert_allclose(T, e.T_gt, atol=1e-8)
+    paths = tum.export_tum(tmp_path / "tum", evals)
+    names = sorted(p.name for p in paths)
+    assert "clip000_vi3.txt" in names and "clip000_imu.txt" in names and "clip002_base.txt" in names
+    assert "clip002_vi3.txt" not in names  # the unobservable clip has no metric output
+    assert len(np.loadtxt(tmp_path / "tum" / "clip001_gt.txt")) == N
+
+
+def test_trajectory_axes_draw_the_four_trajectories_projected_top_down(evals) -> None:
+    from matplotlib.colors import same_color
+    from matplotlib.figure import Figure
+
+    e = evals[0]
+    ax_traj, ax_cloud = Figure().subplots(1, 2)
+    plot.draw_clip(ax_traj, ax_cloud, e)
+    lines = {line.get_label(): line for line in ax_traj.get_lines()}
+    assert set(lines) == {"GT", "Base 3DFM", "IMU", "VI3"}
+    B = plot.ground_basis(e.down_c1)
+    for label, name in (("GT", "gt"), ("Base 3DFM", "base"), ("IMU", "imu"), ("VI3", "vi3")):
+        assert same_color(lines[label].get_color(), plot.COLORS[name])
+        np.testing.assert_allclose(np.column_stack(lines[label].get_data()), e.trajectories()[name][:, :3, 3] @ B.T,
+                                   atol=1e-12)
+    assert len(ax_cloud.collections) == 2  # base and VI3 point clouds

@@ -1,0 +1,56 @@
+"""``ClipEval``: the evaluation record of one clip (what the runner produces and reports, plots and exports read)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vi3_core.eval.metrics import GeometryMetrics, InitMetrics
+from vi3_core.types import AnchorResult, Geometry, ImuTrajectory
+
+
+@dataclass
+class ClipEval:
+    """Evaluation of one clip.
+
+    indices: [n] frame indices in the sequence; stamps: [n] s; status/reason: the init status and its reason;
+    mode: the anchoring mode that actually ran ("none" when the init was not ok); T_gt: [n,4,4] GT camera poses
+    in the first camera frame C1; down_c1: [3] unit gravity direction in C1 (from GT), for top-down views;
+    result: the final ``AnchorResult``; fast: the fast init ``AnchorResult`` when mode is "cond"/"ttr";
+    columns: ``GeometryMetrics`` per column ("base", "init", and "cond"/"ttr" when run);
+    init_metrics: errors of the initialisation against GT.
+    """
+
+    indices: np.ndarray
+    stamps: np.ndarray
+    status: str
+    reason: str
+    mode: str
+    T_gt: np.ndarray
+    down_c1: np.ndarray
+    result: AnchorResult
+    fast: AnchorResult | None
+    columns: dict[str, GeometryMetrics] = field(default_factory=dict)
+    init_metrics: InitMetrics | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def trajectories(self) -> dict[str, np.ndarray]:
+        """Camera trajectories [n,4,4] in C1 by name: "gt", "base", "imu" (the metric IMU target, when the
+        init was ok), "init" (fast init result, when refined), "vi3" (the final metric output, when ok)."""
+        out = {"gt": self.T_gt, "base": self.result.base.T_wc}
+        target: ImuTrajectory | None = self.result.target or self.result.init.target
+        if target is not None:
+            out["imu"] = target.T_wc
+        if self.ok:
+            if self.fast is not None:
+                out["init"] = self.fast.geometry.T_wc
+            out["vi3"] = self.result.geometry.T_wc
+        return out
+
+    def vi3_geometry(self) -> Geometry | None:
+        """The final metric geometry, or None when the init was not ok."""
+        return self.result.geometry if self.ok else None

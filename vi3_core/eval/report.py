@@ -1,0 +1,103 @@
+"""Aggregate per-clip evaluations into the JSON report and paper-like text tables.
+
+Aggregation follows the paper: every number is the median over clips (NaN values, e.g. Scale (Traj.) of a
+stationary clip or depth metrics without GT depth, are left out of the median; a metric with no value is null).
+The Base column uses every clip; the VI3 columns use the clips whose initialisation was ok (a clip with a
+rejected or unobservable init has no metric output; it is counted in ``status_counts``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from vi3_core.eval.clip_eval import ClipEval
+from vi3_core.types import InitStatus
+
+METRIC_LABELS: dict[str, str] = {
+    "trans_rmse_m": "Trans (m) ↓", "rot_deg": "Rot (deg) ↓", "scale_traj": "Scale (Traj.) →1",
+    "absrel": "AbsRel ↓", "delta125": "δ<1.25 ↑", "scale_depth": "Scale (Depth) →1",
+}
+INIT_LABELS: dict[str, str] = {
+    "gravity_err_deg": "Gravity (deg) ↓", "gyro_bias_err": "Gyro-bias (rad/s) ↓", "gyro_bias_rel": "Gyro-bias (rel) ↓",
+    "v1_dir_deg": "v1 dir. (deg) ↓", "v1_mag_err": "v1 mag. ↓", "v1_mag_ratio": "|v1^|/|v1| →1",
+}
+COLUMN_LABELS: dict[str, str] = {"base": "Base", "init": "IMU-init", "cond": "IMU-cond", "ttr": "TTR"}
+
+
+def _median(values: Iterable[float]) -> float | None:
+    arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    arr = arr[np.isfinite(arr)]
+    return float(np.median(arr)) if arr.size else None
+
+
+def _column(evals: Sequence[ClipEval], column: str) -> dict[str, float | None]:
+    rows = [e.columns[column].as_dict() for e in evals if column in e.columns]
+    return {key: _median(r[key] for r in rows) for key in METRIC_LABELS}
+
+
+def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3", backbone: str = "",
+              sequence: str = "") -> dict:
+    """The JSON report: ``n_clips``, ``init`` (median init errors over ok clips), ``base`` and ``vi3`` (median
+    metrics; ``vi3`` is the column of ``mode``), ``columns`` (every column evaluated: base, init, cond/ttr),
+    ``status_counts`` (clips per init status) and a per-clip list."""
+    ok = [e for e in evals if e.ok]
+    columns = [c for c in COLUMN_LABELS if any(c in e.columns for e in evals)]
+    init_rows = [e.init_metrics.as_dict() for e in ok if e.init_metrics is not None]
+    counts = Counter(e.status for e in evals)
+    return {
+        "sequence": sequence, "backbone": backbone, "mode": mode, "init_source": init_source,
+        "n_clips": len(evals), "n_ok": len(ok),
+        "init": {key: _median(r[key] for r in init_rows) for key in INIT_LABELS},
+        "base": _column(evals, "base"),
+        "vi3": _column(evals, mode),
+        "columns": {c: _column(evals, c) for c in columns},
+        "status_counts": {s.value: counts.get(s.value, 0) for s in InitStatus},
+        "clips": [{"frames": [int(e.indices[0]), int(e.indices[-1])], "t0": float(e.stamps[0]), "status": e.status,
+                   "reason": e.reason, "mode": e.mode} for e in evals],
+    }
+
+
+def to_json(summary: dict) -> str:
+    """One JSON object (no NaN: missing values are null)."""
+    return json.dumps(summary, allow_nan=False)
+
+
+def _fmt(value: float | None, key: str) -> str:
+    if value is None:
+        return "--"
+    return f"{value:.2f}" if key.startswith("scale") or key.endswith("ratio") else f"{value:.3f}"
+
+
+def _grid(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    line = "  ".join("-" * w for w in widths)
+    fmt = [h.ljust(widths[0]) if i == 0 else h.rjust(widths[i]) for i, h in enumerate(header)]
+    body = ["  ".join(c.ljust(widths[0]) if i == 0 else c.rjust(widths[i]) for i, c in enumerate(r)) for r in rows]
+    return "\n".join(["  ".join(fmt), line, *body])
+
+
+def format_tables(summary: dict) -> str:
+    """Paper-like text tables: metrics x (Base / IMU-init / IMU-cond / TTR), then the init errors."""
+    cols = list(summary["columns"])
+    title = (f"VI3 evaluation: {summary['sequence'] or 'sequence'} | backbone {summary['backbone'] or '?'} | "
+             f"mode {summary['mode']} | init {'GT-free' if summary['init_source'] == 'vi3' else 'GT (oracle)'} | "
+             f"{summary['n_clips']} clip{'' if summary['n_clips'] == 1 else 's'}, median over clips")
+    rows = [[label, *(_fmt(summary["columns"][c][key], key) for c in cols)] for key, label in METRIC_LABELS.items()]
+    init_rows = [[label, _fmt(summary["init"][key], key)] for key, label in INIT_LABELS.items()]
+    status = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
+    return "\n\n".join([title, _grid(["Metric", *(COLUMN_LABELS[c] for c in cols)], rows),
+                        _grid(["Initialisation", "error"], init_rows), f"clip status: {status}"])
+
+
+def format_ablation(summaries: dict[str, dict]) -> str:
+    """The supplementary init ablations: one row per variant (its ``vi3`` column and init errors)."""
+    geo = ("trans_rmse_m", "scale_traj", "scale_depth")
+    ini = ("gravity_err_deg", "v1_dir_deg", "v1_mag_ratio")
+    header = ["Variant", *(METRIC_LABELS[k] for k in geo), *(INIT_LABELS[k] for k in ini), "ok/clips"]
+    rows = [[name, *(_fmt(s["vi3"][k], k) for k in geo), *(_fmt(s["init"][k], k) for k in ini),
+             f"{s['n_ok']}/{s['n_clips']}"] for name, s in summaries.items()]
+    return "Initialisation ablations (supplementary tables), median over clips\n\n" + _grid(header, rows)

@@ -1,0 +1,85 @@
+"""``vi3 eval INPUT``: the paper's metrics on a sequence with ground truth (ASL folder, ROS 1 bag, rosbag2, .mcap).
+
+Prints paper-like tables (Base / IMU-init / IMU-cond / TTR columns) or, with ``--json``, one JSON object; writes
+the top-down trajectory / point-cloud plot (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+MODES = ("init", "cond", "ttr")  # = vi3_core.anchor.MODES, not imported here: that pulls in torch
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("eval", help="evaluate VI3 against ground truth (paper metrics, tables, plot)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("input", help="ASL folder (mav0/ or its parent), ROS 1 .bag, rosbag2 folder or .mcap with GT")
+    p.add_argument("--calib", default=None, metavar="YAML",
+                   help="camera calibration (EuRoC sensor.yaml or Kalibr camchain) for bags that carry none")
+    p.add_argument("--backbone", default="classical", help="3DFM backbone (default: the embedded 'classical')")
+    p.add_argument("--checkpoint", default=None, help="backbone checkpoint path (real 3DFMs)")
+    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    p.add_argument("--mode", choices=MODES, default="init",
+                   help="anchoring mode of the VI3 column; cond/ttr also report the fast init (default: init)")
+    p.add_argument("--init", choices=("vi3", "gt"), default="vi3", dest="init_source",
+                   help="vi3: GT-free initialisation (default); gt: oracle init from ground truth")
+    p.add_argument("--clips", choices=("paper", "sliding"), default="paper",
+                   help="paper: start/middle/end clips (default); sliding: every --hop frames")
+    p.add_argument("--n", type=int, default=8, help="frames per clip (default 8)")
+    p.add_argument("--stride", type=int, default=2, help="frame stride within a clip (default 2)")
+    p.add_argument("--hop", type=int, default=None, help="frames between sliding clips (default n*stride)")
+    p.add_argument("--max-clips", type=int, default=None, help="evaluate at most this many clips (evenly spread)")
+    p.add_argument("--steps", type=int, default=None, help="TTR steps (default: the paper's 160)")
+    p.add_argument("--ablate", action="store_true",
+                   help="initialisation ablations: TLS vs OLS, all-pairs vs first-pair v1, gravity consensus on/off "
+                        "(each variant in init mode with the GT-free init; --mode and --init are ignored)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON object to FILE")
+    p.add_argument("--plot", default=None, metavar="PNG", help="write the trajectory / point-cloud plot here")
+    p.add_argument("--export-tum", default=None, metavar="DIR", help="write TUM trajectories (for evo) here")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    # Imported here, not at module level: they pull in torch, and `vi3 --help` should stay fast.
+    from vi3_core.anchor import AnchorOptions
+    from vi3_core.backbones import make_backbone
+    from vi3_core.errors import Vi3Error
+    from vi3_core.eval import plot, report, runner, tum
+    from vi3_ros.io.reader import open_sequence
+
+    try:
+        seq = open_sequence(args.input, calib=args.calib)
+        backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
+        options = runner.EvalOptions(
+            mode=args.mode, init_source=args.init_source, clips=args.clips, n=args.n, stride=args.stride,
+            hop=args.hop, max_clips=args.max_clips, progress=not args.no_progress,
+            anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
+        meta = {"backbone": args.backbone, "sequence": seq.name}
+        if args.ablate:
+            variants = runner.ablate(seq, backbone, options=options)
+            summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
+            text, obj = report.format_ablation(summaries), {"ablations": summaries}
+            evals = next(iter(variants.values()))
+        else:
+            evals = runner.evaluate_sequence(seq, backbone, options=options)
+            obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
+            text = report.format_tables(obj)
+        print(report.to_json(obj) if args.json else text)
+        if args.json_out:
+            Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json_out).write_text(report.to_json(obj) + "\n")
+        if args.plot:
+            path = plot.save_plot(args.plot, evals, title=f"{seq.name}: {args.backbone}, {args.mode}")
+            print(f"plot: {path}", file=sys.stderr)
+        if args.export_tum:
+            paths = tum.export_tum(args.export_tum, evals)
+            print(f"TUM trajectories: {len(paths)} files in {args.export_tum}", file=sys.stderr)
+    except (Vi3Error, ValueError, OSError) as exc:
+        print(f"vi3 eval: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
