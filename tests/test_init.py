@@ -151,6 +151,25 @@ def test_first_pair_ablation_runs_and_differs():
     assert not np.allclose(a.v1, b.v1)
 
 
+def test_motionless_backbone_output_is_unobservable_not_an_exception():
+    case = make_init_case(0, imu_noise=ImuNoise(), **NOISY)
+    still = case.geometry.T_wc.copy()
+    still[:, :3, 3] = 0.0
+    r = initialise(dataclasses.replace(case.geometry, T_wc=still), case.imu, case.stamps, case.T_BC)
+    assert r.status is InitStatus.UNOBSERVABLE and "no change of velocity" in r.reason
+
+
+def test_short_imu_history_is_not_used_as_a_gravity_seed():
+    from vi3_core.sim.imu import imu_stamps, simulate_imu
+    from vi3_core.sim.trajectory import make_trajectory
+
+    case = make_init_case(0, imu_noise=ImuNoise(), **NOISY)
+    history = simulate_imu(make_trajectory("drone", seed=0), imu_stamps(case.stamps[0] - 2, case.stamps[-1]),
+                           bg0=case.bg, seed=7).samples
+    r = initialise(case.geometry, case.imu, case.stamps, case.T_BC, imu_history=history)
+    assert r.gravity_source == "imu_fixed_point" and "long_window" not in r.diagnostics["seeds"]
+
+
 def test_anti_aligned_visual_motion_is_not_given_a_scale():
     case = make_init_case(4, imu_noise=ImuNoise(), **NOISY)
     flipped = case.geometry.T_wc.copy()

@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-SUBCOMMANDS = ("bench", "demo")
+SUBCOMMANDS = ("bench", "demo", "replay", "eval", "make_bag")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -44,35 +44,35 @@ def pixel_rays(K: torch.Tensor, h: int, w: int, stride: int = 1) -> torch.Tensor
 
 
 def loss_dcons(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, *,
-               stride: int = 2) -> torch.Tensor:
+               stride: int = 4) -> torch.Tensor:
     """L_dcons (Eq. dcons): back-project frame j's depth to world points X_j, project them into every other
     frame i, and penalise | [pi_i(X_j)]_Z - D_i(pi_i(X_j)) |, keeping per pixel the minimum over i != j and
     averaging over pixels valid in at least one view (inside the image, in front, and interpolated only from
     valid source depths).
 
-    R [n,3,3], t [n,3] camera-to-world; K [n,3,3]; depth, valid [n,h,w]; ``stride`` subsamples frame j's pixels.
+    R [n,3,3], t [n,3] camera-to-world; K [n,3,3]; depth, valid [n,h,w]; ``stride`` subsamples frame j's pixels
+    (an unbiased estimate of the mean: every source depth map is still sampled at full resolution).
     """
     n, h, w = depth.shape
     rays = pixel_rays(K, h, w, stride)  # [n,P,3]
     d_j = depth[:, ::stride, ::stride].reshape(n, -1)
     ok_j = valid[:, ::stride, ::stride].reshape(n, -1)
     X_w = (rays * d_j[..., None]) @ R.transpose(-1, -2) + t[:, None]  # [n_j,P,3] world points
-    # Into every camera i: X_i = R_i^T (X_w - t_i) -> [n_i, n_j, P, 3]
-    X_i = torch.einsum("iba,ijpb->ijpa", R, X_w[None] - t[:, None, None])
+    # Into every camera i (row vectors): X_i = (X_w - t_i) R_i, pixels = X_i K_i^T -> [n_i, n_j, P, 3]
+    X_i = (X_w[None] - t[:, None, None]) @ R[:, None]
     z = X_i[..., 2]
-    uvw = torch.einsum("iab,ijpb->ijpa", K, X_i)
+    uvw = X_i @ K.transpose(-1, -2)[:, None]
     uv = uvw[..., :2] / z.clamp_min(1e-6)[..., None]
-    grid = torch.stack([2.0 * (uv[..., 0] + 0.5) / w - 1.0, 2.0 * (uv[..., 1] + 0.5) / h - 1.0], -1)
-    src = torch.where(valid, depth, torch.zeros_like(depth))[:, None]
-    sampled = F.grid_sample(src, grid.reshape(n, -1, 1, 2), mode="bilinear", padding_mode="zeros",
-                            align_corners=False).reshape(n, n, -1)
-    # Bilinear weights must all fall on valid pixels: sample the mask the same way and demand 1.
-    src_ok = F.grid_sample(valid[:, None].to(depth.dtype), grid.reshape(n, -1, 1, 2), mode="bilinear",
-                           padding_mode="zeros", align_corners=False).reshape(n, n, -1) > 1.0 - 1e-6
+    scale = torch.tensor([2.0 / w, 2.0 / h], dtype=uv.dtype, device=uv.device)
+    grid = ((uv + 0.5) * scale - 1.0).reshape(n, -1, 1, 2)
+    # One bilinear lookup of [depth, valid]: the interpolated mask is 1 only where all four taps are valid.
+    src = torch.stack([torch.where(valid, depth, torch.zeros_like(depth)), valid.to(depth.dtype)], 1)
+    sampled = F.grid_sample(src, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    sampled = sampled.reshape(n, 2, n, -1)
     in_image = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
-    inside = in_image & (z > 1e-6) & src_ok & ok_j[None]
+    inside = in_image & (z > 1e-6) & (sampled[:, 1] > 1.0 - 1e-6) & ok_j[None]
     inside = inside & ~torch.eye(n, dtype=torch.bool, device=depth.device)[..., None]
-    err = torch.where(inside, (z - sampled).abs(), torch.full_like(z, float("inf")))
+    err = torch.where(inside, (z - sampled[:, 0]).abs(), torch.full_like(z, float("inf")))
     best = err.min(dim=0).values  # [n_j, P]
     has = torch.isfinite(best)
     if not has.any():

@@ -6,7 +6,9 @@
   aligned world, z up). As good as the autopilot's estimator, typically about 1 deg.
 - ``long_window``: beyond the paper, the mean specific force over seconds of IMU history around the clip,
   rotated into B1 with the bias-corrected gyro. Velocity is bounded, so the mean acceleration over T seconds is
-  at most |dv| / T; gyro-bias error tilts it by about |dbg| T / 4 for a window centred on the clip.
+  at most |dv| / T: 8 s or more are needed (2 s of EuRoC-like flight leave several degrees, worse than the
+  clip's own inertial estimate). Gyro-bias error tilts it by about |dbg| T / 4 for a one-sided window and
+  cancels to first order for a window centred on the clip.
 - ``geocalib``: single-image gravity from GeoCalib (``pip install geocalib``; its weights must be in the local
   torch hub cache), when installed. Fails on texture-poor, out-of-distribution images (hence Eq. guard).
 """
@@ -42,7 +44,7 @@ def orientation_seed(imu: ImuSamples, t1: float, gravity_norm: float) -> np.ndar
 
 
 def long_window_seed(history: ImuSamples | None, t1: float, bg: np.ndarray, gravity_norm: float, *,
-                     min_seconds: float = 2.0) -> np.ndarray | None:
+                     min_seconds: float = 8.0) -> np.ndarray | None:
     """Mean specific force over ``history`` expressed in B(t1), or None if the window is shorter than
     ``min_seconds``, does not contain t1, or has non-finite samples."""
     if history is None or len(history) < 3:

@@ -123,7 +123,9 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
                         iterations=int(diag["fp_imu_iterations"]), diagnostics=diag)
 
     why = None
-    if accel_rms < options.min_accel_rms:
+    if system.visual_signal == 0.0:
+        why = "scale unobservable: the backbone predicts no change of velocity"
+    elif accel_rms < options.min_accel_rms:
         why = (f"scale unobservable: body acceleration RMS {accel_rms:.3f} m/s^2 < {options.min_accel_rms} "
                "(hover, constant velocity, pure rotation or no motion)")
     elif parallax < options.min_parallax:
@@ -131,8 +133,6 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
     elif not s > 0.0 or alignment < options.min_alignment:
         why = (f"scale unobservable: visual and inertial velocity increments disagree (cos {alignment:.2f} < "
                f"{options.min_alignment}); the paper's fallback s = 1 is not claimed")
-    elif system.visual_signal == 0.0:
-        why = "scale unobservable: the backbone predicts no change of velocity"
     if why:
         result.status, result.reason = InitStatus.UNOBSERVABLE, why
         return result

@@ -121,6 +121,9 @@ class ScaleGravitySystem:
         The loop runs on Python floats: numpy's per-call overhead would dominate these 3-vector operations.
         """
         G = self.gravity_norm
+        if self._m2 <= 0.0:  # the backbone predicts no change of velocity: S is undefined
+            g0 = G * np.asarray(g_seed, dtype=np.float64) / np.linalg.norm(g_seed)
+            return FixedPoint(g0, float("nan"), 0, False, False)
         P, Q, q, u = (tuple(map(float, v)) for v in (self._P_hat, self._Q_hat, self._q, self._u))
         A, w2, r, m2 = self._A, self._w2, self._r, self._m2
         anti = False

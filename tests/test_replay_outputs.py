@@ -1,0 +1,36 @@
+"""The point cloud of a clip: back-projection into the clip frame, confidence and depth filtering."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vi3_core import so3
+from vi3_core.types import Geometry
+from vi3_ros.pipeline import cloud_points
+
+
+def test_cloud_points_reproject_to_their_pixels():
+    rng = np.random.default_rng(0)
+    n, h, w = 3, 12, 16
+    K = np.array([[20.0, 0, 7.5], [0, 21.0, 5.5], [0, 0, 1]])
+    T = np.stack([so3.make_T(so3.exp(rng.normal(0, 0.2, 3)), rng.normal(0, 0.5, 3)) for _ in range(n)])
+    T[0] = np.eye(4)
+    depth = rng.uniform(1.0, 30.0, (n, h, w))
+    depth[1, 2, 4] = np.nan
+    conf = rng.uniform(0, 1, (n, h, w))
+    geom = Geometry(T_wc=T, K=np.repeat(K[None], n, 0), depth=depth, conf=conf, metric=True)
+
+    pts, c = cloud_points(geom, np.array([2]), stride=1, conf_quantile=0.0, max_depth=100.0)
+    assert pts.shape == (h * w, 3) and pts.dtype == np.float32
+    X = (np.linalg.inv(T[2]) @ np.c_[pts, np.ones(len(pts))].T)[:3]  # back into camera 2
+    uv = (K @ X)[:2] / X[2]
+    v, u = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    np.testing.assert_allclose(uv.T, np.c_[u.ravel(), v.ravel()], atol=1e-3)
+    np.testing.assert_allclose(X[2], depth[2].ravel(), rtol=1e-5)
+    np.testing.assert_allclose(c, conf[2].ravel(), rtol=1e-6)
+
+    pts, c = cloud_points(geom, np.arange(n), stride=2, conf_quantile=0.5, max_depth=20.0)
+    thr = np.quantile(conf, 0.5)
+    sub_d, sub_c = depth[:, ::2, ::2], conf[:, ::2, ::2]
+    expected = np.isfinite(sub_d) & (sub_d <= 20.0) & (sub_c >= thr)
+    assert len(pts) == expected.sum() and (c >= thr).all() and np.isfinite(pts).all()

@@ -1,0 +1,96 @@
+"""Parameter declarations shared by the node and replay: checking, the ROS 2 parameter file, the docs table, and
+the calibration assembly that CameraInfo / tf_static / calib_file feed."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msg_adapters.camera_info import calib_to_camera_info, camera_info_to_calib
+from msg_adapters.types import jazzy_types
+from vi3_core.dataset.calib import load_calib
+from vi3_core.dataset.generate import EUROC_CAM0
+from vi3_core.errors import CalibrationError, DataError
+from vi3_ros.commands.replay import register, values_from_args
+from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, parse_assignment, resolve
+from vi3_ros.pipeline import Calibration, buffer_options, calib_from_camera_info
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_every_parameter_is_valid_and_documented():
+    assert len(BY_NAME) == len(PARAMS)
+    for p in PARAMS:
+        assert p.check(p.default) == p.default and p.description
+        if p.range is not None:
+            assert p.range[0] <= p.default <= p.range[1]
+    assert (REPO / "docs" / "node.md").read_text().count(markdown_table()) == 1
+
+
+def test_checks_name_the_parameter():
+    with pytest.raises(DataError, match="clip_length: 1 is outside"):
+        resolve({"clip_length": 1})
+    with pytest.raises(DataError, match="mode: 'fast' is not one of"):
+        resolve({"mode": "fast"})
+    with pytest.raises(DataError, match="unknown parameter 'clip_len'"):
+        resolve({"clip_len": 4})
+    with pytest.raises(DataError, match="stride: expected int"):
+        resolve({"stride": 2.5})
+    assert parse_assignment("publish_tf=true") == ("publish_tf", True)
+    assert parse_assignment("time_offset=-0.01") == ("time_offset", -0.01)
+
+
+def test_euroc_config_loads_and_maps_to_buffer_options():
+    values = resolve(load_yaml(REPO / "config" / "euroc.yaml"))
+    assert values["image_topic"] == "/cam0/image_raw" and values["imu_topic"] == "/imu0"
+    opts = buffer_options(values)
+    assert (opts.n, opts.stride, opts.clip_hop) == (8, 2, 16)
+    calib = load_calib(REPO / "config" / "euroc_cam0_sensor.yaml")
+    np.testing.assert_allclose(calib.K, EUROC_CAM0.K)
+    np.testing.assert_allclose(calib.T_BC, EUROC_CAM0.T_BC)
+
+
+def test_bad_parameter_file(tmp_path):
+    bad = tmp_path / "p.yaml"
+    bad.write_text("vi3_node:\n  ros__parameters:\n    strde: 3\n")
+    with pytest.raises(DataError, match="unknown parameter 'strde'"):
+        load_yaml(bad)
+    bad.write_text("other_node:\n  ros__parameters: {}\n")
+    with pytest.raises(DataError, match="no 'vi3_node: ros__parameters:'"):
+        load_yaml(bad)
+
+
+def test_replay_cli_precedence(tmp_path):
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    f = tmp_path / "p.yaml"
+    f.write_text("/**:\n  ros__parameters:\n    stride: 3\n    mode: ttr\n")
+    args = parser.parse_args(["replay", "in", "-o", "out.mcap", "--params-file", str(f), "--param", "stride=4",
+                              "--mode", "cond"])
+    values = values_from_args(args)
+    assert values["stride"] == 4 and values["mode"] == "cond" and values["clip_length"] == 8
+
+
+def test_calibration_from_camera_info_and_tf():
+    types = jazzy_types()
+    c = EUROC_CAM0
+    cal = Calibration()
+    with pytest.raises(CalibrationError, match="no camera intrinsics"):
+        cal.current()
+    msg = calib_to_camera_info(c.K, "plumb_bob", np.r_[c.dist, 0.0], c.size, stamp_ns=1, frame_id="cam0", types=types)
+    cal.set_intrinsics(*camera_info_to_calib(msg))
+    with pytest.raises(CalibrationError, match="extrinsics"):
+        cal.current()
+    cal.set_extrinsics(c.T_BC)
+    got = cal.current()
+    assert got.dist_model == "radtan" and np.allclose(got.dist, c.dist) and got.size == c.size
+    assert cal.current() is got  # cached until something changes
+    cal.set_extrinsics(np.eye(4))
+    assert np.allclose(cal.current().T_BC, np.eye(4))
+    with pytest.raises(CalibrationError, match="beyond"):
+        calib_from_camera_info(c.K, "plumb_bob", np.array([0.1, 0, 0, 0, 0.01]), c.size, c.T_BC)
+    file_cal = Calibration(c)
+    assert file_cal.current() is c

@@ -1,0 +1,50 @@
+"""``vi3 replay INPUT --output OUT.mcap``: run the node's pipeline over a recorded sequence (see vi3_ros.replay)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from vi3_core.errors import Vi3Error
+from vi3_ros.params import load_yaml, parse_assignment, resolve
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("replay", help="replay a bag or ASL folder through the node's pipeline into an MCAP",
+                       description="Drives the same clip buffer, worker and anchoring as vi3_node in bag time and "
+                       "writes what the node would publish. Parameters: docs/node.md.")
+    p.add_argument("input", help="ASL folder, ROS 1 .bag, rosbag2 directory or .mcap")
+    p.add_argument("--output", "-o", required=True, help="OUT.mcap (one MCAP file) or a rosbag2 directory name")
+    p.add_argument("--backbone", help="3D foundation model (parameter backbone)")
+    p.add_argument("--mode", choices=("init", "cond", "ttr"), help="refinement (parameter mode)")
+    p.add_argument("--calib", help="EuRoC sensor.yaml or Kalibr camchain YAML (parameter calib_file)")
+    p.add_argument("--device", help="torch device (parameter device)")
+    p.add_argument("--params-file", help="ROS 2 parameter YAML, e.g. config/euroc.yaml")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any node parameter")
+    p.add_argument("--copy-inputs", action="store_true", help="also write the input images and IMU")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=run)
+
+
+def values_from_args(args: argparse.Namespace) -> dict:
+    """Parameter values: defaults < --params-file < --param < the named options."""
+    overrides = load_yaml(args.params_file) if args.params_file else {}
+    overrides.update(parse_assignment(a) for a in args.param)
+    named = {"backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device}
+    overrides.update({k: v for k, v in named.items() if v is not None})
+    return resolve(overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vi3_ros.replay import replay
+
+    try:
+        summary = replay(args.input, args.output, values=values_from_args(args), copy_inputs=args.copy_inputs,
+                         progress=not args.no_progress and sys.stderr.isatty())
+    except Vi3Error as exc:
+        print(f"vi3 replay: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary.as_dict()) if args.json else f"wrote {args.output}\n{summary.text()}")
+    return 0

@@ -1,0 +1,374 @@
+"""The shared per-stream pipeline: messages in (as numpy), the output messages of each clip out, through an
+``OutputSink`` that the node implements with rclpy publishers and replay with an MCAP writer.
+
+    add_image / add_imu -> ClipBuffer -> Worker (latest-wins thread, or synchronous for replay) -> process():
+    RawClip -> undistorted Clip -> vi3_core.anchor.anchor(on_init=...) -> PoseArray, depth, PointCloud2, TF, status
+
+Which result a message carries: ``~/poses``, ``~/depth`` and ``~/points`` carry each clip's final result (the
+``init`` result in ``mode=init``, the refined one in ``cond``/``ttr``). In ``cond``/``ttr`` the fast ``init`` result
+is published first on ``~/init/poses``, ``~/init/depth`` and ``~/init/points``. Every result is described on
+``~/status`` (key ``result``: init | cond | ttr | none | skipped).
+
+Frames (see docs/node.md): poses and points are in ``clip_frame``, the clip's first camera (OpenCV optical axes,
+metric); depth images in ``camera_frame``; TF ``camera_frame -> clip_frame`` at the clip's last frame stamp.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from msg_adapters.diagnostics import DiagStatus, Level, diagnostic_array
+from msg_adapters.image import depth_to_image
+from msg_adapters.pointcloud import point_cloud2
+from msg_adapters.poses import pose_array, tf_message
+from msg_adapters.types import MessageTypes
+from vi3_core.anchor import AnchorOptions, anchor, check_mode
+from vi3_core.backbones import make_backbone
+from vi3_core.dataset.calib import CameraCalib, load_calib
+from vi3_core.errors import CalibrationError
+from vi3_core.init import validate
+from vi3_core.init.options import InitOptions
+from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
+from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
+from vi3_ros.worker import Worker
+
+
+@dataclass(frozen=True)
+class Output:
+    """topic: relative to the node (``~/``) or absolute; msgtype: ROS 2 type name."""
+
+    topic: str
+    msgtype: str
+
+
+OUTPUTS: dict[str, Output] = {
+    "poses": Output("~/poses", "geometry_msgs/msg/PoseArray"),
+    "depth": Output("~/depth", "sensor_msgs/msg/Image"),
+    "points": Output("~/points", "sensor_msgs/msg/PointCloud2"),
+    "init_poses": Output("~/init/poses", "geometry_msgs/msg/PoseArray"),
+    "init_depth": Output("~/init/depth", "sensor_msgs/msg/Image"),
+    "init_points": Output("~/init/points", "sensor_msgs/msg/PointCloud2"),
+    "status": Output("~/status", "diagnostic_msgs/msg/DiagnosticArray"),
+    "diagnostics": Output("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+    "tf": Output("/tf", "tf2_msgs/msg/TFMessage"),
+}
+STATUS_NAME = "vi3: clip"
+DIAG_NAME = "vi3: pipeline"
+
+
+class OutputSink(Protocol):
+    """Where the messages of a clip go. ``key`` is a key of ``OUTPUTS``; ``stamp_ns`` the message's header stamp
+    (camera time), which replay uses as the log time."""
+
+    def publish(self, key: str, msg: Any, stamp_ns: int) -> None: ...
+
+
+def buffer_options(values: dict[str, Any]) -> ClipBufferOptions:
+    """ClipBufferOptions from parameter values (see vi3_ros.params)."""
+    return ClipBufferOptions(n=values["clip_length"], stride=values["stride"], hop=values["hop"] or None,
+                             max_frame_gap=values["max_frame_gap"], time_offset=values["time_offset"],
+                             imu_capacity=values["imu_buffer"], imu_timeout=values["imu_timeout"],
+                             history=values["imu_history"], max_pending=values["max_pending"])
+
+
+def calib_from_camera_info(K: np.ndarray, dist_model: str, dist: np.ndarray, size: tuple[int, int],
+                           T_BC: np.ndarray) -> CameraCalib:
+    """A CameraCalib from ``msg_adapters.camera_info.camera_info_to_calib``'s output and T_BC [4,4].
+
+    plumb_bob maps to radtan when k3 = 0 (radtan has k1, k2, p1, p2); all-zero coefficients mean no distortion."""
+    dist = np.asarray(dist, dtype=np.float64)
+    if not dist.any():
+        return CameraCalib(K, "none", np.zeros(0), size, T_BC)
+    if dist_model == "equidistant":
+        return CameraCalib(K, "equidistant", dist, size, T_BC)
+    if dist_model in ("plumb_bob", "rational_polynomial") and not dist[4:].any():
+        return CameraCalib(K, "radtan", dist[:4], size, T_BC)
+    raise CalibrationError(f"CameraInfo distortion {dist_model} with coefficients {dist.tolist()} has terms beyond "
+                           "k1, k2, p1, p2 that the undistorter does not model")
+
+
+class Calibration:
+    """The current camera calibration, assembled from a calibration file and/or live messages.
+
+    Intrinsics come from CameraInfo (``set_intrinsics``) or the file; T_BC from /tf_static (``set_extrinsics``) or
+    the file. ``current()`` raises CalibrationError naming what is still missing."""
+
+    def __init__(self, file_calib: CameraCalib | None = None) -> None:
+        self._file = file_calib
+        self._intrinsics: tuple | None = None
+        self._T_BC: np.ndarray | None = None
+        self._cached: CameraCalib | None = file_calib
+
+    def set_intrinsics(self, K: np.ndarray, dist_model: str, dist: np.ndarray, size: tuple[int, int]) -> None:
+        new = (np.asarray(K, np.float64), dist_model, np.asarray(dist, np.float64), tuple(size))
+        old = self._intrinsics
+        if old is None or not (np.array_equal(old[0], new[0]) and old[1] == new[1] and np.array_equal(old[2], new[2])
+                               and old[3] == new[3]):
+            self._intrinsics, self._cached = new, None
+
+    def set_extrinsics(self, T_BC: np.ndarray) -> None:
+        T_BC = np.asarray(T_BC, np.float64)
+        if self._T_BC is None or not np.array_equal(self._T_BC, T_BC):
+            self._T_BC, self._cached = T_BC, None
+
+    def current(self) -> CameraCalib:
+        if self._cached is not None:
+            return self._cached
+        T_BC = self._T_BC if self._T_BC is not None else (self._file.T_BC if self._file is not None else None)
+        if self._intrinsics is None and self._file is None:
+            raise CalibrationError("no camera intrinsics yet: no CameraInfo received and no calib_file given")
+        if T_BC is None:
+            raise CalibrationError("no camera-IMU extrinsics: no /tf_static imu_frame -> camera_frame and no "
+                                   "calib_file given")
+        if self._intrinsics is not None:
+            self._cached = calib_from_camera_info(*self._intrinsics, T_BC)
+        else:
+            f = self._file
+            self._cached = CameraCalib(f.K, f.dist_model, f.dist, f.size, T_BC, f.rate_hz)
+        return self._cached
+
+
+def make_clip(raw: RawClip, calib: CameraCalib) -> Clip:
+    """Undistort the raw frames of ``raw`` with ``calib`` into a Clip (K of the undistorted images)."""
+    und = calib.undistorter()
+    h, w = raw.images[0].shape[:2]
+    if (w, h) != tuple(calib.size):
+        raise CalibrationError(f"frames are {w}x{h} but the calibration is for {calib.size[0]}x{calib.size[1]}")
+    images = np.stack([und.apply(im) for im in raw.images])
+    return Clip(stamps=raw.stamps, images=images, K=und.K, T_BC=calib.T_BC, imu=raw.imu, imu_history=raw.imu_history)
+
+
+def cloud_points(geometry: Geometry, frames: np.ndarray, *, stride: int, conf_quantile: float,
+                 max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """Back-projected depth pixels of ``frames`` in the clip frame (the first camera), metres.
+
+    Keeps every ``stride``-th pixel in each direction whose depth is finite, in (0, max_depth], and whose
+    confidence is at least the ``conf_quantile`` quantile of the clip's confidences. Returns points [N,3] float32
+    and confidence [N] float32. Vectorised over all selected frames."""
+    depth = geometry.depth[frames, ::stride, ::stride].astype(np.float64)
+    conf = geometry.conf[frames, ::stride, ::stride].astype(np.float64)
+    f, h, w = depth.shape
+    v, u = np.meshgrid(np.arange(h) * stride, np.arange(w) * stride, indexing="ij")
+    K = geometry.K[frames]
+    x = (u[None] - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None] * depth
+    y = (v[None] - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None] * depth
+    X = np.stack([x, y, depth], -1).reshape(f, -1, 3)
+    T = geometry.T_wc[frames]
+    P = np.einsum("fij,fnj->fni", T[:, :3, :3], X) + T[:, None, :3, 3]
+    finite_conf = geometry.conf[np.isfinite(geometry.conf)]
+    thr = np.quantile(finite_conf, conf_quantile) if conf_quantile > 0 and finite_conf.size else -np.inf
+    with np.errstate(invalid="ignore"):
+        keep = (np.isfinite(depth) & (depth > 0) & (depth <= max_depth) & (conf >= thr)).reshape(f, -1)
+    return P[keep].astype(np.float32), conf.reshape(f, -1)[keep].astype(np.float32)
+
+
+@dataclass
+class ClipReport:
+    """What happened to one clip: index, result (init | cond | ttr | none | skipped), reason, stamp
+    (camera time, ns), the AnchorResult when one exists, and the wall-clock latency of processing in seconds."""
+
+    index: int
+    result: str
+    reason: str
+    stamp_ns: int
+    anchor: AnchorResult | None = None
+    latency_s: float = float("nan")
+
+
+class Pipeline:
+    """One camera + IMU stream through buffer, worker and anchoring, to an OutputSink.
+
+    values: parameter values (``vi3_ros.params.resolve``); backbone: a ``vi3_core`` Backbone; calibration: the
+    Calibration to use; synchronous: process each clip inside ``add_*`` (replay) instead of on the worker thread;
+    on_report: called with each ClipReport (replay's summary). Thread-safe where the node needs it: outputs are
+    published from the worker thread, inputs arrive on the executor's thread."""
+
+    def __init__(self, values: dict[str, Any], *, backbone: Any, calibration: Calibration, sink: OutputSink,
+                 types: MessageTypes, synchronous: bool = False,
+                 on_report: Callable[[ClipReport], None] | None = None) -> None:
+        check_mode(backbone, values["mode"])  # an unsupported mode fails here, not once per clip
+        self.values = dict(values)
+        self.backbone = backbone
+        self.calibration = calibration
+        self.sink = sink
+        self.types = types
+        self.buffer = ClipBuffer(buffer_options(values))
+        self._anchor_options = AnchorOptions(steps=values["ttr_steps"])
+        self._init_options = InitOptions(min_accel_rms=values["min_accel_rms"], max_imu_gap_s=values["max_imu_gap"])
+        self._on_report = on_report
+        self._lock = threading.Lock()  # guards the buffer and counters (executor thread vs worker thread)
+        self._input_drops: collections.Counter[str] = collections.Counter()
+        self.outcomes: collections.Counter[str] = collections.Counter()
+        self.worker = Worker(self._process, on_error=self._on_error, on_replaced=self._on_replaced,
+                             synchronous=synchronous)
+
+    # ---- inputs (any thread) --------------------------------------------------------------------------------
+
+    def add_image(self, stamp_ns: int, image: np.ndarray) -> None:
+        """A camera frame: message stamp (camera time, ns) and the raw image [H,W] or [H,W,3] uint8."""
+        with self._lock:
+            events = self.buffer.add_image(stamp_ns, image)
+        self._dispatch(events)
+
+    def add_imu(self, t: float, gyro, accel, orientation=None) -> None:
+        """An IMU sample: t s, gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw or None."""
+        with self._lock:
+            events = self.buffer.add_imu(t, gyro, accel, orientation)
+        self._dispatch(events)
+
+    def close(self) -> None:
+        self.worker.wait_idle(None if self.worker.synchronous else 60.0)
+        self.worker.stop()
+
+    def _dispatch(self, events: list[RawClip | Drop]) -> None:
+        for ev in events:
+            if isinstance(ev, RawClip):
+                self.worker.submit(ev)
+            elif ev.clip >= 0:
+                self._report_skip(ev.clip, ev.reason, ev.detail, int(round((ev.t - self.values["time_offset"]) * 1e9)))
+            else:
+                with self._lock:
+                    self._input_drops[ev.reason] += 1
+                self._publish_diagnostics(Level.WARN, f"{ev.reason}: {ev.detail}",
+                                          int(round((ev.t - self.values["time_offset"]) * 1e9)))
+
+    # ---- worker side ----------------------------------------------------------------------------------------
+
+    def _process(self, raw: RawClip) -> None:
+        t_start = time.perf_counter()
+        stamp_ns = int(raw.stamps_ns[-1])
+        try:
+            calib = self.calibration.current()
+        except CalibrationError as exc:
+            self._report_skip(raw.index, "calibration_missing", str(exc), stamp_ns)
+            return
+        clip = make_clip(raw, calib)
+        # The initialisation's own data checks, before the backbone: a clip it would reject costs no inference.
+        reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self._init_options)
+        if reason is not None:
+            init = InitResult(status=InitStatus.REJECTED, reason=reason)
+            self._publish_status(raw, init, None, "none", time.perf_counter() - t_start)
+            return
+        refine = self.values["mode"] != "init"
+
+        def on_init(result: AnchorResult) -> None:
+            if refine and result.init.ok:
+                self._publish_geometry(raw, result.geometry, prefix="init_")
+                self._publish_status(raw, result.init, result, "init", time.perf_counter() - t_start)
+
+        result = anchor(clip, self.backbone, mode=self.values["mode"], options=self._anchor_options,
+                        init_options=self._init_options, on_init=on_init)
+        latency = time.perf_counter() - t_start
+        if result.init.ok and result.mode != "none":
+            self._publish_geometry(raw, result.geometry, prefix="")
+        self._publish_status(raw, result.init, result, result.mode if result.init.ok else "none", latency)
+
+    def _on_error(self, raw: RawClip, exc: BaseException) -> None:
+        self._report_skip(raw.index, "error", f"{type(exc).__name__}: {exc}", int(raw.stamps_ns[-1]), Level.ERROR)
+
+    def _on_replaced(self, raw: RawClip) -> None:
+        self._report_skip(raw.index, "worker_busy", "replaced by a newer clip while the worker was busy",
+                          int(raw.stamps_ns[-1]))
+
+    # ---- outputs --------------------------------------------------------------------------------------------
+
+    def _publish_geometry(self, raw: RawClip, geometry: Geometry, *, prefix: str) -> None:
+        v, types = self.values, self.types
+        stamp = int(raw.stamps_ns[-1])
+        self.sink.publish(prefix + "poses", pose_array(geometry.T_wc, stamp_ns=stamp, frame_id=v["clip_frame"],
+                                                       types=types), stamp)
+        frames = np.arange(geometry.n) if v["depth_frames"] == "all" else np.array([geometry.n - 1])
+        for i in frames:
+            s = int(raw.stamps_ns[i])
+            self.sink.publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s,
+                                                               frame_id=v["camera_frame"], types=types), s)
+        frames = np.arange(geometry.n) if v["points_frames"] == "all" else np.array([geometry.n - 1])
+        pts, conf = cloud_points(geometry, frames, stride=v["points_stride"], conf_quantile=v["points_conf_quantile"],
+                                 max_depth=v["points_max_depth"])
+        self.sink.publish(prefix + "points", point_cloud2(pts, confidence=conf, stamp_ns=stamp,
+                                                          frame_id=v["clip_frame"], types=types), stamp)
+        if v["publish_tf"] and not prefix:
+            T_last_clip = np.linalg.inv(geometry.T_wc[-1])
+            self.sink.publish("tf", tf_message([(T_last_clip, v["camera_frame"], v["clip_frame"], stamp)],
+                                               types=types), stamp)
+
+    def _take_input_drops(self) -> str:
+        with self._lock:
+            text = ", ".join(f"{k}:{n}" for k, n in sorted(self._input_drops.items()))
+            self._input_drops.clear()
+        return text
+
+    def _publish_status(self, raw: RawClip, init: InitResult, result: AnchorResult | None, kind: str,
+                        latency: float) -> None:
+        """~/status (and, for final results, /diagnostics) of one result; ``result`` None when anchoring did not
+        run (data rejected before the backbone)."""
+        drops = self._take_input_drops()
+        level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
+        if drops and level is Level.OK:
+            level = Level.WARN
+        reason = init.reason if not init.ok else (result.status or "ok")
+        alpha = result.alpha if result is not None else float("nan")
+        values = {"clip": raw.index, "result": kind, "init_status": init.status.value, "reason": reason,
+                  "scale": f"{init.scale:.6g}", "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
+                  "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
+                  "bg": _vec(init.bg), "t_first": f"{raw.stamps[0]:.9f}", "t_last": f"{raw.stamps[-1]:.9f}",
+                  "input_drops": drops, "latency_ms": f"{latency * 1e3:.1f}"}
+        if result is not None and kind != "init":
+            values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
+                           for k, a in sorted(result.losses.items()) if np.asarray(a).size})
+        if result is not None:
+            values.update({f"timing_{k}": f"{s:.4g}" for k, s in sorted(result.timings.items())})  # units in k
+        self._emit(ClipReport(raw.index, kind, reason, int(raw.stamps_ns[-1]), result, latency),
+                   DiagStatus(level, STATUS_NAME, f"{kind}: {reason}", self.values["clip_frame"], values),
+                   final=kind != "init" or self.values["mode"] == "init")
+
+    def _report_skip(self, index: int, reason: str, detail: str, stamp_ns: int, level: Level = Level.WARN) -> None:
+        values = {"clip": index, "result": "skipped", "reason": reason, "detail": detail,
+                  "input_drops": self._take_input_drops()}
+        self._emit(ClipReport(index, "skipped", reason, stamp_ns),
+                   DiagStatus(level, STATUS_NAME, f"skipped: {reason}: {detail}", self.values["clip_frame"], values),
+                   final=True)
+
+    def _emit(self, report: ClipReport, status: DiagStatus, *, final: bool) -> None:
+        self.sink.publish("status", diagnostic_array([status], stamp_ns=report.stamp_ns, types=self.types),
+                          report.stamp_ns)
+        if final:
+            with self._lock:
+                self.outcomes[report.result if report.result != "skipped" else f"skipped:{report.reason}"] += 1
+            self._publish_diagnostics(status.level, status.message, report.stamp_ns)
+            if self._on_report is not None:
+                self._on_report(report)
+
+    def diagnostics_status(self, level: Level = Level.OK, message: str = "running") -> DiagStatus:
+        """The pipeline's summary: counters of clips, outcomes, buffer drops and worker replacements."""
+        with self._lock:
+            values = {"clips_emitted": self.buffer.clips, "worker_processed": self.worker.processed,
+                      "worker_replaced": self.worker.replaced, "worker_errors": self.worker.errors}
+            values.update({f"outcome_{k}": n for k, n in sorted(self.outcomes.items())})
+            values.update({f"drop_{k}": n for k, n in sorted(self.buffer.counts.items())})
+        return DiagStatus(level, DIAG_NAME, message, self.values["clip_frame"], values)
+
+    def _publish_diagnostics(self, level: Level, message: str, stamp_ns: int) -> None:
+        msg = diagnostic_array([self.diagnostics_status(level, message)], stamp_ns=stamp_ns, types=self.types)
+        self.sink.publish("diagnostics", msg, stamp_ns)
+
+
+def make_pipeline(values: dict[str, Any], *, sink: OutputSink, types: MessageTypes, synchronous: bool = False,
+                  on_report: Callable[[ClipReport], None] | None = None) -> Pipeline:
+    """The pipeline of parameter ``values``: backbone from ``backbone``/``device``/``checkpoint``, calibration
+    file from ``calib_file`` (empty: calibration must arrive as CameraInfo and /tf_static)."""
+    backbone = make_backbone(values["backbone"], device=values["device"], checkpoint=values["checkpoint"] or None)
+    calibration = Calibration(load_calib(values["calib_file"]) if values["calib_file"] else None)
+    return Pipeline(values, backbone=backbone, calibration=calibration, sink=sink, types=types,
+                    synchronous=synchronous, on_report=on_report)
+
+
+def _vec(v: np.ndarray) -> str:
+    return " ".join(f"{x:.6g}" for x in np.asarray(v, dtype=np.float64).reshape(-1))

@@ -1,0 +1,58 @@
+"""``vi3 bench replay``: replay speed in bag time.
+
+Without ``--input`` it generates (once, cached under ``.cache/bench`` of the working directory) a 20 s EuRoC-format
+sequence and converts it like a user would (ASL -> ROS 1 bag -> rosbag2 MCAP), then replays it in ``init`` mode
+with the chosen backbone. ``realtime_factor`` = bag seconds / replay wall seconds (backbone loading excluded), so
+>= 1 means the pipeline keeps up with the recording while processing every clip.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from vi3_core.dataset.calib import write_euroc_sensor_yaml
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_ros.io.convert import convert_to_rosbag2
+from vi3_ros.io.ros1 import write_ros1_bag
+from vi3_ros.params import resolve
+from vi3_ros.replay import replay
+
+BENCH_SECONDS = 20.0
+CACHE = Path(".cache") / "bench"
+
+
+def _default_input() -> tuple[Path, Path]:
+    """(rosbag2 MCAP directory, calibration YAML) of the cached 20 s sequence."""
+    asl = cached_sequence(CACHE, seconds=BENCH_SECONDS, seed=0, with_depth=False)
+    bag, mcap, calib = asl / "seq.bag", asl / "mcap", asl / "cam0_sensor.yaml"
+    if not mcap.exists():
+        if not bag.exists():
+            write_ros1_bag(asl, bag)
+        convert_to_rosbag2(bag, mcap)
+    if not calib.exists():
+        write_euroc_sensor_yaml(EUROC_CAM0, calib)
+    return mcap, calib
+
+
+def bench_replay(args: argparse.Namespace) -> dict:
+    """Replay the input ``args.repeats`` times (default 1); median realtime factor and per-clip latency."""
+    if args.input:
+        inp, calib = Path(args.input), None
+    else:
+        inp, calib = _default_input()
+    values = resolve({"backbone": args.backbone, "device": args.device, "mode": "init",
+                      **({"calib_file": str(calib)} if calib is not None else {})})
+    runs = []
+    for _ in range(args.repeats or 1):
+        with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
+            runs.append(replay(inp, Path(tmp) / "out.mcap", values=values, progress=False))
+    rtf = [r.realtime_factor for r in runs]
+    best = runs[int(np.argsort(rtf)[len(rtf) // 2])]
+    return {"realtime_factor": round(float(np.median(rtf)), 3), "clips": best.clips,
+            "median_latency_ms": round(best.median_latency_ms, 1), "bag_s": round(best.bag_s, 3),
+            "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
+            "input": str(inp)}
