@@ -313,11 +313,9 @@ def test_fault_stationary_stretch(bag3, tmp_path):
 
     summary, msgs = _run(_edited(src, tmp_path / "still", still, until_ns=_two_clips(asl)), tmp_path / "out.mcap")
     first = _statuses(msgs)[0]
-    # Intended: init_status "unobservable". The initialisation currently raises ZeroDivisionError on a motionless
-    # clip (reported to the lead), which the worker turns into a skipped clip with reason "error": either way the
-    # clip publishes no geometry, is named on ~/status and /diagnostics, and the stream goes on.
-    assert (first.values["result"], first.values.get("init_status", "error")) in (
-        ("none", "unobservable"), ("none", "rejected"), ("skipped", "error")), first.values
+    # The clip publishes no geometry, says why on ~/status and /diagnostics, and the stream goes on.
+    assert (first.values["result"], first.values.get("init_status")) == ("none", "unobservable"), first.values
+    assert "unobservable" in first.values["reason"]
     assert first.level >= 1 and first.values["reason"]
     assert any(first.values["reason"] in m for m in _diag_messages(msgs))
     assert stamp_to_ns(msgs["/vi3_node/poses"][0].header.stamp) > t1
