@@ -6,6 +6,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 from vi3_core.anchor.options import MODES, AnchorOptions
 from vi3_core.anchor.ttr import refine
 from vi3_core.backbones.base import CAP_COND_INTRINSICS, CAP_COND_POSE, CAP_TTR, Backbone, Condition
@@ -82,6 +84,6 @@ def anchor(clip: Clip, backbone: Backbone, *, mode: str = "init", options: Ancho
 
     ttr = refine(backbone, inputs, base_pred, init.target, options)
     timings["ttr_s"] = time.perf_counter() - t2
-    timings["ttr_ms_per_iter"] = 1e3 * ttr.seconds / max(options.steps, 1)
+    timings["ttr_ms_per_iter"] = float(np.median(ttr.step_ms)) if options.steps else 0.0
     return AnchorResult(geometry=ttr.geometry, base=base, init=init, mode="ttr", alpha=ttr.alpha, target=init.target,
                         losses=ttr.losses, alphas=ttr.alphas, timings=timings, status="ok")

@@ -20,7 +20,8 @@ def bench_cache_dir() -> Path:
 
 def bench_ttr(args) -> dict:
     """TTR on the middle clip (n = 8, stride 2) of a generated 3 s sequence; ``args.repeats`` = steps (default
-    40; the per-step cost does not depend on K, the paper's 160 steps take 160x that)."""
+    40). ``ms_per_iter`` is the median step time (the first steps of a process carry one-time kernel warm-up);
+    ``total_s`` is the whole clip: backbone, initialisation and every step."""
     steps = args.repeats or 40
     seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
     clip = make_clip(seq, sample_clips(len(seq), n=8, stride=2, mode="paper")[1], with_depth=False)

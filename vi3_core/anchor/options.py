@@ -12,10 +12,11 @@ class AnchorOptions:
     """Paper defaults (Sec. "Experimental setup"): K = 160 AdamW steps, w_r = 20, w_p = 10, w_d = 10,
     w_ap = 1000, w_ad = 1, the camera and depth heads plus the last L = 8 global blocks and alpha trainable.
 
-    lr: learning rate of the backbone's trainable groups (None: the backbone's ``ttr_lr``); lr_alpha: of log
-    alpha; weight_decay: AdamW's, never applied to alpha; dcons_stride: pixel subsampling of Eq. dcons's
-    target frames (4: every 16th pixel; an unbiased estimate of the same mean at 1/16 of the cost); seed: torch seed for a deterministic run; geocalib: use GeoCalib as a gravity seed when it
-    is installed.
+    lr: learning rate of the backbone's trainable groups (None: the backbone's ``ttr_lr``);
+    lr_alpha: learning rate of log alpha; weight_decay: AdamW's, never applied to alpha;
+    dcons_stride: pixel subsampling of Eq. dcons's target frames (4: every 16th pixel, an unbiased estimate of
+    the same mean at 1/16 of the cost); seed: torch seed for a deterministic run;
+    geocalib: use GeoCalib as a gravity seed when it is installed.
     """
 
     steps: int = 160

@@ -24,13 +24,15 @@ LOSS_NAMES = ("rot", "pos", "dcons", "anchor_pos", "anchor_depth", "total")
 @dataclass
 class TTRResult:
     """geometry: refined metric Geometry; alpha: final scale; alphas: [K] alpha per step; losses: name -> [K]
-    values (unweighted, plus the weighted total); seconds: wall time of the K steps."""
+    values (unweighted, plus the weighted total); seconds: wall time of the K steps; step_ms: [K] wall time of
+    each step (the first steps of a process include one-time kernel warm-up)."""
 
     geometry: Geometry
     alpha: float
     alphas: np.ndarray
     losses: dict[str, np.ndarray]
     seconds: float
+    step_ms: np.ndarray
 
 
 def path_length_ratio(t_imu: np.ndarray, t_model: np.ndarray) -> float:
@@ -101,10 +103,12 @@ def refine(backbone: Backbone, inputs: BackboneInputs, base: Prediction, target:
         groups.append({"params": params, "lr": options.lr or backbone.ttr_lr, "weight_decay": options.weight_decay})
     history = {k: np.zeros(options.steps) for k in LOSS_NAMES}
     alphas = np.zeros(options.steps)
+    step_ms = np.zeros(options.steps)
     t_start = time.perf_counter()
     with trainable_scope(backbone, params):
         opt = torch.optim.AdamW(groups)
         for k in range(options.steps):
+            t_step = time.perf_counter()
             opt.zero_grad(set_to_none=True)
             pred = backbone.forward(inputs)
             terms = ttr_losses(pred, log_alpha.exp(), target, depth0, valid, options)
@@ -113,9 +117,11 @@ def refine(backbone: Backbone, inputs: BackboneInputs, base: Prediction, target:
             for name, value in terms.items():
                 history[name][k] = float(value.detach())
             alphas[k] = float(log_alpha.detach().exp())
+            step_ms[k] = 1e3 * (time.perf_counter() - t_step)
         seconds = time.perf_counter() - t_start
         with torch.no_grad():
             alpha = float(log_alpha.exp())
             geometry = backbone.forward(inputs).geometry(scale=alpha)
     geometry.metric = True
-    return TTRResult(geometry=geometry, alpha=alpha, alphas=alphas, losses=history, seconds=seconds)
+    return TTRResult(geometry=geometry, alpha=alpha, alphas=alphas, losses=history, seconds=seconds,
+                     step_ms=step_ms)

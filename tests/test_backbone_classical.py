@@ -1,0 +1,222 @@
+"""The embedded ``classical`` backbone: accuracy on generated EuRoC-format clips, its plane sweep on an exact
+plane, trainable corrections, degenerate clips, bad input, and ``vi3 bench backbone``."""
+
+from __future__ import annotations
+
+import argparse
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from test_backbone_contract import half_resolution
+
+from vi3_core import so3
+from vi3_core.backbones import make_backbone
+from vi3_core.backbones.base import Condition
+from vi3_core.backbones.bench import bench_backbone
+from vi3_core.backbones.classical import ClassicalBackbone
+from vi3_core.backbones.classical.mvs import pixel_rays, plane_sweep
+from vi3_core.dataset.asl import read_asl
+from vi3_core.dataset.generate import cached_sequence
+from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.errors import CalibrationError, DataError, ModeNotSupported
+from vi3_core.eval.metrics import absrel_median_aligned, gt_camera_poses, resample_depth
+
+#: Local grey-level standard deviation (0-255, 7x7 window at the working resolution) above which a pixel counts
+#: as textured for the depth acceptance.
+TEXTURE_STD = 4.0
+
+
+def _sim3_align(p: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Positions p [n,3] after the least-squares similarity transform onto g [n,3] (Umeyama)."""
+    mp, mg = p.mean(0), g.mean(0)
+    U, S, Vt = np.linalg.svd((g - mg).T @ (p - mp) / len(p))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    s = np.trace(np.diag(S) @ D) / np.mean(np.sum((p - mp) ** 2, axis=1))
+    return s * (p - mp) @ (U @ D @ Vt).T + mg
+
+
+def _textured(images: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    """[n,h,w] bool: local grey-level std above TEXTURE_STD at the working resolution."""
+    small = np.stack([cv2.resize(im, hw[::-1], interpolation=cv2.INTER_AREA) for im in images]).astype(np.float32)
+    mu = np.stack([cv2.blur(x, (7, 7)) for x in small])
+    sq = np.stack([cv2.blur(x * x, (7, 7)) for x in small])
+    return np.sqrt(np.maximum(sq - mu**2, 0.0)) > TEXTURE_STD
+
+
+@pytest.fixture(scope="module")
+def room(cache_dir):
+    return read_asl(cached_sequence(cache_dir, seconds=4.0, seed=0) / "mav0")
+
+
+@pytest.fixture(scope="module")
+def first_clip(room):
+    return make_clip(room, sample_clips(len(room), n=8, stride=2, mode="paper")[0])
+
+
+@pytest.fixture(scope="module")
+def half_clip(first_clip) -> tuple[np.ndarray, np.ndarray]:
+    """The first paper clip at 376x240: (images [8,240,376] uint8, K [3,3])."""
+    return half_resolution(first_clip.images, first_clip.K)
+
+
+def test_accuracy_on_generated_euroc_clips(room):
+    """Acceptance: rotation <= 1 deg median, translation <= 5 % of the path after a Sim(3) alignment, median-scaled
+    AbsRel <= 0.15 on textured pixels, on the three paper clips (n = 8, stride 2 at 20 Hz) of a generated room."""
+    backbone = make_backbone("classical")
+    for idx in sample_clips(len(room), n=8, stride=2, mode="paper"):
+        clip = make_clip(room, idx)
+        inputs = backbone.preprocess(clip.images, clip.K)
+        assert inputs.status == "ok", inputs.reason
+        geom = backbone.forward(inputs).geometry()
+        T_gt = gt_camera_poses(clip.gt, clip.T_BC)
+        rot = np.degrees(so3.angle(np.einsum("nji,njk->nik", geom.T_wc[:, :3, :3], T_gt[:, :3, :3])))
+        assert np.median(rot[1:]) <= 1.0, rot
+        g = T_gt[:, :3, 3]
+        path = np.linalg.norm(np.diff(g, axis=0), axis=1).sum()
+        trans = np.linalg.norm(_sim3_align(geom.T_wc[:, :3, 3], g) - g, axis=1).max() / path
+        assert trans <= 0.05, (trans, path)
+        depth_gt = resample_depth(clip.gt.depth, clip.K, geom.K[0], geom.depth.shape[1:])
+        textured = _textured(clip.images, geom.depth.shape[1:])
+        assert textured.mean() > 0.5  # the generated rooms are textured nearly everywhere
+        absrel = absrel_median_aligned(np.where(textured, geom.depth, np.nan), depth_gt)
+        assert absrel <= 0.15, absrel
+        # Confidence ranks the depth: the confident half is more accurate than the rest.
+        conf_med = np.median(geom.conf)
+        hi = absrel_median_aligned(np.where(geom.conf >= conf_med, geom.depth, np.nan), depth_gt)
+        lo = absrel_median_aligned(np.where(geom.conf < conf_med, geom.depth, np.nan), depth_gt)
+        assert hi < lo, (hi, lo)
+
+
+def test_scale_is_normalised_like_vggt(half_clip):
+    """Confidence-weighted mean distance of the dense points from the first camera is 1; not metric."""
+    backbone = make_backbone("classical")
+    with torch.no_grad():
+        pred = backbone.forward(backbone.preprocess(*half_clip))
+    h, w = pred.depth.shape[1:]
+    pts = torch.einsum("nij,jhw->nihw", pred.R_wc, pixel_rays(pred.K[0], h, w)) * pred.depth[:, None]
+    dist = (pts + pred.t_wc[:, :, None, None]).norm(dim=1)
+    assert float((pred.conf * dist).sum() / pred.conf.sum()) == pytest.approx(1.0, rel=1e-4)
+    assert pred.metric is False
+
+
+def test_plane_sweep_recovers_an_exact_plane():
+    """Sources made by the exact plane-induced homographies of a fronto-parallel textured plane at depth 2.7 (a
+    fractional disparity of 5.56 px for the x baseline: no locking onto whole pixels)."""
+    rng = np.random.default_rng(0)
+    h, w = 90, 120
+    ref = cv2.GaussianBlur(rng.uniform(0, 1, (h, w)).astype(np.float32), (0, 0), 1.5)
+    ref = (ref - ref.min()) / (ref.max() - ref.min())
+    ref[:, : w // 4] = 0.5  # a flat band: no texture, so no confidence
+    K = np.array([[100.0, 0, (w - 1) / 2], [0, 100.0, (h - 1) / 2], [0, 0, 1]])
+    depth = 2.7
+    t_wc = np.array([[0.0, 0, 0], [0.15, 0, 0], [-0.15, 0.05, 0], [0.1, -0.1, 0.05]])
+    # Source camera at t (no rotation) sees the plane z = depth through x_src ~ K (I - t n^T / depth) K^-1 x_ref.
+    frames = [ref] + [cv2.warpPerspective(ref, K @ (np.eye(3) - np.outer(t, [0, 0, 1]) / depth) @ np.linalg.inv(K),
+                                          (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+                      for t in t_wc[1:]]
+    d, conf = plane_sweep(torch.as_tensor(np.stack(frames))[:, None], torch.as_tensor(K, dtype=torch.float32),
+                          torch.eye(3).expand(4, 3, 3), torch.as_tensor(t_wc, dtype=torch.float32),
+                          torch.tensor([[1.0, 4.0]] * 4), n_depths=32, n_sources=3, best_k=2, window=5)
+    inner = (slice(10, -10), slice(w // 4 + 10, -10))
+    assert np.median(np.abs(d[0][inner].numpy() / depth - 1)) < 0.005
+    assert float(conf[0][inner].mean()) > 3 * float(conf[0][:, 4: w // 4 - 4].mean())
+
+
+def test_corrections_are_the_trainable_groups(half_clip):
+    images, K = half_clip
+    backbone = make_backbone("classical")
+    assert backbone.param_groups().trainable(2) == []  # nothing before a clip is preprocessed
+    inputs = backbone.preprocess(images, K)
+    groups = backbone.param_groups()
+    assert groups.global_blocks == [] and len(groups.camera_head) == 2 and len(groups.depth_head) == 1
+    base = backbone.forward(inputs)
+    with torch.no_grad():
+        groups.camera_head[1][0] = torch.tensor([0.1, -0.2, 0.3])  # translation offset of frame 1
+        groups.camera_head[0][2] = torch.tensor([0.0, 0.0, 0.05])  # rotation offset of frame 3
+        groups.depth_head[0][4] = float(np.log(2.0))
+    moved = backbone.forward(inputs)
+    assert torch.allclose(moved.t_wc[1] - base.t_wc[1], torch.tensor([0.1, -0.2, 0.3]), atol=1e-6)
+    assert torch.allclose(moved.R_wc[3], torch.as_tensor(so3.exp(np.array([0, 0, 0.05])), dtype=torch.float32)
+                          @ base.R_wc[3], atol=1e-5)
+    assert torch.allclose(moved.depth[4], 2 * base.depth[4], rtol=1e-5)
+    assert torch.equal(moved.R_wc[0], base.R_wc[0]) and torch.equal(moved.t_wc[0], base.t_wc[0])
+    # Gradient descent on the corrections alone pulls frame 2 onto a target pose.
+    target = base.t_wc[2].detach() + torch.tensor([0.05, 0.0, -0.05])
+    opt = torch.optim.Adam(groups.camera_head, lr=0.01)
+    for _ in range(60):
+        opt.zero_grad()
+        loss = (backbone.forward(inputs).t_wc[2] - target).square().sum()
+        loss.backward()
+        opt.step()
+    assert float(loss.detach()) < 1e-4
+    # A new clip gets fresh corrections; the old inputs keep theirs.
+    backbone.preprocess(images[:4], K)
+    assert backbone.param_groups().camera_head[0] is not groups.camera_head[0]
+    assert torch.allclose(backbone.forward(inputs).depth[4], 2 * base.depth[4], rtol=1e-5)
+
+
+def test_stationary_clip_reports_instead_of_inventing_motion(first_clip):
+    backbone = ClassicalBackbone()
+    images = np.repeat(first_clip.images[:1], 6, axis=0)
+    geom = backbone.predict(images, first_clip.K)
+    assert backbone.last_status == "stationary" and "motion" in backbone.last_reason
+    assert np.allclose(geom.T_wc, np.eye(4)) and np.all(geom.conf == 0) and np.all(geom.depth > 0)
+
+
+def test_textureless_clip_reports_few_features(first_clip):
+    backbone = ClassicalBackbone()
+    geom = backbone.predict(np.full((5, 240, 320), 128, np.uint8), first_clip.K * [[0.4], [0.5], [1]])
+    assert backbone.last_status == "few_features" and "track" in backbone.last_reason
+    assert np.allclose(geom.T_wc, np.eye(4)) and np.all(geom.conf == 0)
+
+
+def test_pure_rotation_gives_rotations_but_no_translation(first_clip):
+    """Frames warped by the infinite homography K R K^-1 of frame 0 have no parallax at all."""
+    K = first_clip.K
+    H, W = first_clip.images.shape[1:3]
+    rotvecs = np.radians([[0, 0, 0], [0.5, 1.0, 0], [1.0, 2.0, 0.3], [1.5, 3.0, 0.6], [2.0, 4.0, 0.9]])
+    R_wc = so3.exp(rotvecs)
+    images = np.stack([cv2.warpPerspective(first_clip.images[0], K @ R.T @ np.linalg.inv(K), (W, H))
+                       for R in R_wc])
+    backbone = ClassicalBackbone()
+    geom = backbone.predict(images, K)
+    assert backbone.last_status == "no_parallax", backbone.last_reason
+    assert np.all(geom.T_wc[:, :3, 3] == 0) and np.all(geom.conf == 0)
+    err = np.degrees(so3.angle(np.einsum("nji,njk->nik", geom.T_wc[:, :3, :3], R_wc)))
+    assert err.max() < 0.2, err
+
+
+def test_bad_input_raises_named_errors(half_clip):
+    images, K = half_clip
+    backbone = ClassicalBackbone()
+    with pytest.raises(DataError, match="uint8"):
+        backbone.preprocess(images.astype(np.float32), K)
+    with pytest.raises(CalibrationError, match="K must be"):
+        backbone.preprocess(images, np.eye(2))
+    inputs = backbone.preprocess(images[:3], K)
+    with pytest.raises(ModeNotSupported, match="conditioning"):
+        backbone.forward(inputs, Condition(T_wc=np.tile(np.eye(4), (3, 1, 1))))
+
+
+def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):
+    monkeypatch.setenv("VI3_CACHE", str(cache_dir))
+    out = bench_backbone(argparse.Namespace(backbone="classical", device="cpu", repeats=1))
+    assert out["frames"] == 8 and out["resolution"] == [480, 752] and out["working_resolution"] == [120, 188]
+    assert 0 < out["median_s"] < 60 and out["status"] == "ok"
+    assert set(out["stages_s"]) == {"tracks_s", "sfm_s", "mvs_s"}
+
+
+def test_real_euroc_frames(euroc_fixture):
+    """The real 5-frame EuRoC MH_01 fixture (handheld motion in the machine hall): geometry is recovered, and the
+    near clutter in the lower third of the view is nearer than the hall behind it in the upper third."""
+    seq = read_asl(euroc_fixture)
+    undistort = seq.calib.undistorter()
+    images = np.stack([undistort.apply(seq.image(i)) for i in range(len(seq))])
+    backbone = ClassicalBackbone()
+    geom = backbone.predict(images, undistort.K)
+    assert backbone.last_status == "ok", backbone.last_reason
+    assert backbone.last_inputs.diagnostics["reproj_px_median"] < 0.5
+    h = geom.depth.shape[1]
+    assert np.median(geom.depth[:, 2 * h // 3:]) < 0.5 * np.median(geom.depth[:, : h // 3])

@@ -1,0 +1,42 @@
+"""``vi3 bench backbone``: seconds per clip of a backbone's ``predict`` (preprocess + no-grad forward) on one
+8-frame clip (stride 2 at 20 Hz) of a generated EuRoC-format sequence, 752x480 input."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from vi3_core.anchor.bench import bench_cache_dir
+from vi3_core.backbones import make_backbone
+from vi3_core.dataset.asl import read_asl
+from vi3_core.dataset.generate import cached_sequence
+from vi3_core.dataset.sequence import make_clip, sample_clips
+
+
+def bench_backbone(args) -> dict:
+    """Wall and process-CPU seconds per clip over ``args.repeats`` runs (default 5) after one warm-up run.
+
+    Keys: median_s, min_s, cpu_median_s (process CPU time, less sensitive to other load on the machine),
+    frames, resolution (input [H, W]), working_resolution ([h, w] of depth), backbone, device, repeats, and for
+    backbones that report them the per-stage seconds of the last run and the clip status.
+    """
+    repeats = args.repeats or 5
+    seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
+    clip = make_clip(seq, sample_clips(len(seq), n=8, stride=2, mode="paper")[1], with_depth=False)
+    backbone = make_backbone(args.backbone, device=args.device)
+    geometry = backbone.predict(clip.images, clip.K)  # warm-up: imports, allocator, thread pools
+    wall, cpu = np.empty(repeats), np.empty(repeats)
+    for k in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        geometry = backbone.predict(clip.images, clip.K)
+        wall[k], cpu[k] = time.perf_counter() - t0, time.process_time() - c0
+    out = {"median_s": float(np.median(wall)), "min_s": float(wall.min()), "cpu_median_s": float(np.median(cpu)),
+           "frames": int(clip.n), "resolution": [int(s) for s in clip.images.shape[1:3]],
+           "working_resolution": [int(s) for s in geometry.depth.shape[1:]], "backbone": args.backbone,
+           "device": str(args.device), "repeats": repeats}
+    last = getattr(backbone, "last_inputs", None)
+    if last is not None and hasattr(last, "diagnostics"):
+        out["stages_s"] = {k: round(float(v), 4) for k, v in last.diagnostics.items() if k.endswith("_s")}
+        out["status"] = last.status
+    return out

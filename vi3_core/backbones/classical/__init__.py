@@ -1,0 +1,203 @@
+"""The embedded ``classical`` backbone: up-to-scale multi-view geometry from classical vision, CPU, no weights.
+
+``preprocess`` does the non-differentiable work once per clip: feature tracks (``tracks``), structure from
+motion into one consistent up-to-scale frame (``poses``, ``bundle``) and plane-sweep stereo at the working
+resolution (``mvs``). ``forward`` then applies explicit trainable corrections, zero at the start, so that the base
+forward is exactly the classical result and test-time refinement can move poses and depth:
+
+- camera_head: per-frame rotation-vector and translation offsets of frames 1..n-1 (frame 0 stays the world);
+  R_wc = exp(dw) R_wc_base, t_wc = t_wc_base + dt;
+- depth_head: a log-depth offset per working-resolution pixel, depth = depth_base * exp(dlog);
+- global_blocks: none.
+
+Scale is normalised the way VGGT normalises its training targets: the confidence-weighted mean distance of the
+dense points of all frames from the first camera centre is 1 (``metric`` is False).
+
+A clip the geometry cannot be recovered from (too few tracks, no image motion, rotation only) is not an error:
+the inputs carry ``status`` (``ok`` | ``few_features`` | ``stationary`` | ``no_parallax``) and a ``reason``,
+the confidence is zero everywhere, depth is a constant 1, translations are zero and rotations are those of a
+pure-rotation fit of the tracks where one was made (``no_parallax``, a failed registration), else the identity.
+The last clip's inputs, status and reason are also on the backbone (``last_inputs``, ``last_status``,
+``last_reason``) for callers of ``predict``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import torch
+
+from vi3_core import so3_torch
+from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
+from vi3_core.backbones.classical.mvs import pixel_rays, plane_sweep
+from vi3_core.backbones.classical.poses import SfmResult, estimate_poses
+from vi3_core.backbones.classical.tracks import track_features
+from vi3_core.errors import CalibrationError, DataError, ModeNotSupported
+
+
+class Corrections(torch.nn.Module):
+    """Trainable corrections of one clip, all zero at creation.
+
+    rotvec [n-1,3] rad and trans [n-1,3] (model units) for frames 1..n-1; log_depth [n,h,w].
+    """
+
+    def __init__(self, n: int, hw: tuple[int, int], *, device: torch.device, dtype: torch.dtype) -> None:
+        super().__init__()
+        self.rotvec = torch.nn.Parameter(torch.zeros(n - 1, 3, device=device, dtype=dtype))
+        self.trans = torch.nn.Parameter(torch.zeros(n - 1, 3, device=device, dtype=dtype))
+        self.log_depth = torch.nn.Parameter(torch.zeros(n, *hw, device=device, dtype=dtype))
+
+
+@dataclass
+class ClassicalInputs(BackboneInputs):
+    """``BackboneInputs`` plus the clip's classical result and its corrections.
+
+    base_R_wc [n,3,3], base_t_wc [n,3] camera-to-world (frame 0 = identity, normalised scale); base_depth,
+    base_conf [n,h,w]; corrections: this clip's ``Corrections``; status/reason: see the module docstring;
+    diagnostics: counts, errors and stage timings (s).
+    """
+
+    base_R_wc: torch.Tensor
+    base_t_wc: torch.Tensor
+    base_depth: torch.Tensor
+    base_conf: torch.Tensor
+    corrections: Corrections
+    status: str
+    reason: str
+    diagnostics: dict = field(default_factory=dict)
+
+
+def _depth_range(sfm: SfmResult, visible: np.ndarray, *, margin: float) -> tuple[float, float]:
+    """(near, far) of the plane sweep: the 1st and 99th percentiles of the z-depths of the sparse points in the
+    views that see them, widened by ``margin``. One range for the whole clip, and a wide one, because a surface
+    with few tracks (a box that just came into view) must still fall inside it; sampling in inverse depth
+    keeps a wide range affordable."""
+    Xc = np.einsum("nji,mnj->mni", sfm.R_wc, sfm.points[:, None, :] - sfm.t_wc[None])
+    z = Xc[..., 2][visible & np.isfinite(sfm.points[:, :1]) & (Xc[..., 2] > 0)]
+    return float(np.percentile(z, 1)) / margin, float(np.percentile(z, 99)) * margin
+
+
+class ClassicalBackbone(Backbone):
+    """Classical multi-view geometry behind the backbone contract (see the module docstring).
+
+    Options (keyword-only): ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120);
+    ``max_features`` tracked corners per frame; ``n_depths``, ``n_sources``, ``best_k``, ``window``: plane-sweep
+    settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly.
+    """
+
+    name = "classical"
+    metric = False
+    capabilities = frozenset({CAP_TTR})
+    patch_size = 1  # no patch grid: the working resolution is the input divided by ``downscale``
+    # The trainable groups are explicit corrections in radians, model units and log-depth, not network weights:
+    # an Adam step of 1e-3 moves each by about a milliradian / a thousandth of the scene scale.
+    ttr_lr = 1e-3
+
+    def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
+                 downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24, n_sources: int = 4,
+                 best_k: int = 2, window: int = 7, bundle_adjust: bool = True) -> None:
+        super().__init__(device=device, dtype=dtype)
+        if downscale < 1:
+            raise ValueError(f"downscale must be >= 1, got {downscale}")
+        self.downscale = downscale
+        self.max_features = max_features
+        self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window)
+        self.bundle_adjust = bundle_adjust
+        #: The last clip's inputs (status, reason, diagnostics); its corrections are what ``param_groups`` returns.
+        self.last_inputs: ClassicalInputs | None = None
+
+    @property
+    def last_status(self) -> str:
+        """Status of the last preprocessed clip ('' before any)."""
+        return "" if self.last_inputs is None else self.last_inputs.status
+
+    @property
+    def last_reason(self) -> str:
+        """Reason of the last preprocessed clip's status ('' before any)."""
+        return "" if self.last_inputs is None else self.last_inputs.reason
+
+    def working_size(self, H: int, W: int) -> tuple[int, int]:
+        """(h, w) of the working resolution for (H, W) input images."""
+        return max(int(round(H / self.downscale)), 8), max(int(round(W / self.downscale)), 8)
+
+    def preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
+        """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``."""
+        images = np.asarray(images)
+        if images.dtype != np.uint8 or images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[3] != 3):
+            raise DataError(f"images must be uint8 [n,H,W] or [n,H,W,3]; got {images.dtype} {images.shape}")
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CalibrationError(f"K must be a finite [3,3] intrinsic matrix with fx, fy > 0; got {K.tolist()}")
+        n, H, W = images.shape[:3]
+        gray = images if images.ndim == 3 else np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images])
+        rgb = np.repeat(images[..., None], 3, axis=-1) if images.ndim == 3 else images
+        h, w = self.working_size(H, W)
+        small = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in rgb])
+        sx, sy = w / W, h / H
+        K_s = np.array([[K[0, 0] * sx, 0.0, (K[0, 2] + 0.5) * sx - 0.5],
+                        [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+
+        timings = {}
+        t0 = time.perf_counter()
+        tracks = track_features(gray, max_features=self.max_features)
+        timings["tracks_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        sfm = estimate_poses(tracks, K, bundle_adjust=self.bundle_adjust)
+        timings["sfm_s"] = time.perf_counter() - t0
+
+        dev, f32 = self.device, torch.float32
+        R = torch.as_tensor(sfm.R_wc, dtype=f32, device=dev)
+        t = torch.as_tensor(sfm.t_wc, dtype=f32, device=dev)
+        img = torch.as_tensor(small, device=dev).permute(0, 3, 1, 2).to(f32) / 255.0
+        K_t = torch.as_tensor(K_s, dtype=f32, device=dev)
+        if sfm.ok:
+            t0 = time.perf_counter()
+            near, far = _depth_range(sfm, tracks.visible, margin=2.0)
+            rng = torch.tensor([[near, far]], dtype=f32, device=dev).expand(n, 2)
+            with torch.no_grad():
+                depth, conf = plane_sweep(img.mean(1, keepdim=True), K_t, R, t, rng, **self.mvs_options)
+            timings["mvs_s"] = time.perf_counter() - t0
+            # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
+            # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
+            pts = torch.einsum("nij,jhw->nihw", R, pixel_rays(K_t, h, w)) * depth[:, None] + t[:, :, None, None]
+            if float(conf.sum()) > 1e-6:
+                s = float((conf * pts.norm(dim=1)).sum() / conf.sum())
+            else:
+                s = float(np.linalg.norm(sfm.points[np.isfinite(sfm.points[:, 0])], axis=1).mean())
+            t, depth = t / s, depth / s
+            sfm.diagnostics["scale_divisor"] = s
+        else:
+            depth, conf = torch.ones(n, h, w, device=dev), torch.zeros(n, h, w, device=dev)
+        dt = self.dtype
+        inputs = ClassicalInputs(
+            images=img.to(dt), K=K_t.to(dt).expand(n, 3, 3).clone(), src_hw=(H, W),
+            base_R_wc=R.to(dt), base_t_wc=t.to(dt), base_depth=depth.to(dt), base_conf=conf.to(dt),
+            corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
+            diagnostics={**sfm.diagnostics, **timings})
+        self.last_inputs = inputs
+        return inputs
+
+    def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
+        """Base geometry of ``inputs`` with its corrections applied (differentiable in the corrections)."""
+        if condition is not None:
+            raise ModeNotSupported("the classical backbone takes no input conditioning (use init-only or TTR)")
+        if not isinstance(inputs, ClassicalInputs):
+            raise DataError(f"classical forward needs ClassicalInputs from its preprocess, got {type(inputs).__name__}")
+        c = inputs.corrections
+        R = torch.cat([inputs.base_R_wc[:1], so3_torch.exp(c.rotvec) @ inputs.base_R_wc[1:]])
+        t = torch.cat([inputs.base_t_wc[:1], inputs.base_t_wc[1:] + c.trans])
+        depth = inputs.base_depth * torch.exp(c.log_depth)
+        return Prediction(R_wc=R, t_wc=t, K=inputs.K, depth=depth, conf=inputs.base_conf, metric=False)
+
+    def param_groups(self) -> ParamGroups:
+        """camera_head: [rotvec, trans]; depth_head: [log_depth] of the last preprocessed clip (empty before)."""
+        if self.last_inputs is None:
+            return ParamGroups()
+        c = self.last_inputs.corrections
+        return ParamGroups(camera_head=[c.rotvec, c.trans], depth_head=[c.log_depth], global_blocks=[])
+
+    def modules(self) -> list[torch.nn.Module]:
+        return [] if self.last_inputs is None else [self.last_inputs.corrections]

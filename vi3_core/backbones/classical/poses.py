@@ -1,0 +1,188 @@
+"""Up-to-scale camera poses and sparse points of a clip from feature tracks (structure from motion).
+
+Steps: an essential matrix (RANSAC) between frame 0 and the frame with the most parallax fixes the first
+up-to-scale baseline; its inlier tracks are triangulated; every other frame is registered against those points
+by PnP (RANSAC); all tracks are then triangulated from every view that sees them (linear DLT) and poses and
+points are refined together by a small bundle adjustment (``bundle.py``).
+
+World = first camera (OpenCV axes), poses camera-to-world. The scale is whatever the first baseline gave; the
+caller normalises it. Degenerate clips are reported, never forced: no common tracks -> ``few_features``; image
+motion below ``stationary_px`` -> ``stationary`` (identity poses); motion explained by a rotation alone ->
+``no_parallax`` (rotations estimated, translations zero).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from vi3_core.backbones.classical.bundle import bundle_adjust as refine
+from vi3_core.backbones.classical.tracks import Tracks
+
+OK = "ok"
+STATIONARY = "stationary"
+NO_PARALLAX = "no_parallax"
+FEW_FEATURES = "few_features"
+
+
+@dataclass
+class SfmResult:
+    """R_wc [n,3,3], t_wc [n,3] camera-to-world in the first camera's frame (arbitrary scale);
+    points [m,3] per track in that frame, NaN where not triangulated; status one of ok | stationary |
+    no_parallax | few_features, with a human-readable reason; diagnostics: counts and errors."""
+
+    R_wc: np.ndarray
+    t_wc: np.ndarray
+    points: np.ndarray
+    status: str
+    reason: str
+    diagnostics: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == OK
+
+
+def _bearings(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixels [...,2] -> normalised image coordinates [...,2] (z = 1)."""
+    return (uv - K[:2, 2]) / np.diag(K)[:2]
+
+
+def _project(points: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points [m,3] into n cameras -> pixels [m,n,2] and z-depths [m,n]."""
+    Xc = np.einsum("nji,mnj->mni", R_wc, points[:, None, :] - t_wc[None])  # R_wc^T (X - t)
+    z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = Xc[..., :2] / z[..., None] * np.diag(K)[:2] + K[:2, 2]
+    return uv, z
+
+
+def triangulate(uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
+                K: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of m tracks from all the views that see them.
+
+    uv [m,n,2] pixels, visible [m,n] bool, poses camera-to-world [n,3,3], [n,3] -> points [m,3] in the world.
+    """
+    R_cw = np.swapaxes(R_wc, 1, 2)
+    P = np.concatenate([R_cw, -(R_cw @ t_wc[..., None])], axis=2)  # [n,3,4] world -> camera
+    x = np.where(visible[..., None], _bearings(np.nan_to_num(uv), K), 0.0)
+    rows = np.concatenate([x[..., 0:1, None] * P[None, :, 2:3] - P[None, :, 0:1],
+                           x[..., 1:2, None] * P[None, :, 2:3] - P[None, :, 1:2]], axis=2)  # [m,n,2,4]
+    A = (rows * visible[..., None, None]).reshape(len(uv), -1, 4)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return Xh[:, :3] / Xh[:, 3:]
+
+
+def _clean_points(points: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
+                  K: np.ndarray, *, max_reproj_px: float, min_angle_deg: float) -> np.ndarray:
+    """NaN out points seen in < 2 views, behind a camera, with a reprojection error above ``max_reproj_px``
+    in any view, or whose rays meet at less than ``min_angle_deg`` (depth poorly constrained)."""
+    proj, z = _project(points, R_wc, t_wc, K)
+    err = np.where(visible, np.linalg.norm(proj - uv, axis=-1), 0.0)
+    rays = points[:, None, :] - t_wc[None]
+    with np.errstate(invalid="ignore"):
+        rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+    # Largest angle between any viewing ray and the ray of the first view that sees the point.
+    first = np.take_along_axis(rays, np.argmax(visible, axis=1)[:, None, None], axis=1)
+    cosang = np.where(visible, np.sum(rays * first, axis=-1), 1.0)
+    angle = np.degrees(np.arccos(np.clip(cosang.min(axis=1), -1.0, 1.0)))
+    good = (visible.sum(1) >= 2) & np.all(np.where(visible, z > 0, True), axis=1)
+    good &= np.nan_to_num(err, nan=np.inf).max(axis=1) <= max_reproj_px
+    good &= angle >= min_angle_deg
+    return np.where(good[:, None], points, np.nan)
+
+
+def _rotation_only(uv: np.ndarray, visible: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """R_wc [n,3,3] of a purely rotating camera: Kabsch fit of each frame's bearings to frame 0's."""
+    n = uv.shape[1]
+    f = np.concatenate([_bearings(np.nan_to_num(uv), K), np.ones(uv.shape[:2] + (1,))], -1)
+    f /= np.linalg.norm(f, axis=-1, keepdims=True)
+    both = visible & visible[:, :1]  # [m,n]
+    H = np.einsum("mn,mni,mj->nij", both.astype(float), f, f[:, 0])  # sum f_i f_0^T: R_0i f_i ~ f_0
+    U, _, Vt = np.linalg.svd(H)
+    D = np.ones((n, 3))
+    D[:, 2] = np.sign(np.linalg.det(Vt.transpose(0, 2, 1) @ U.transpose(0, 2, 1)))
+    return np.einsum("nji,nj,nkj->nik", Vt, D, U)
+
+
+def estimate_poses(tracks: Tracks, K: np.ndarray, *, stationary_px: float = 0.5, min_parallax_px: float = 1.0,
+                   min_tracks: int = 30, ransac_px: float = 1.0, max_reproj_px: float = 3.0,
+                   min_angle_deg: float = 0.3, bundle_adjust: bool = True, ba_iterations: int = 20) -> SfmResult:
+    """Structure from motion over the clip (see the module docstring). ``K`` [3,3] of the tracked images."""
+    uv, visible = tracks.uv, tracks.visible
+    n = uv.shape[1]
+    eye, zero = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+    nan_points = np.full((len(uv), 3), np.nan)
+    common = (visible & visible[:, :1]).sum(0)
+    if n < 2 or common[1:].max(initial=0) < min_tracks:
+        return SfmResult(eye, zero, nan_points, FEW_FEATURES,
+                         f"too few feature tracks shared with frame 0 (best {common[1:].max(initial=0)}, "
+                         f"need {min_tracks})", {"tracks": len(uv)})
+    flow = np.linalg.norm(uv - uv[:, :1], axis=-1)
+    med_flow = np.array([np.median(flow[visible[:, j] & visible[:, 0], j]) if common[j] else 0.0
+                         for j in range(n)])
+    if med_flow.max() < stationary_px:
+        return SfmResult(eye, zero, nan_points, STATIONARY,
+                         f"no image motion (median feature flow {med_flow.max():.2f} px < {stationary_px} px)",
+                         {"tracks": len(uv), "median_flow_px": float(med_flow.max())})
+    # Rotation-compensated parallax of every frame against frame 0 decides the initial pair.
+    R_rot = _rotation_only(uv, visible, K)
+    derot = np.einsum("ij,njk,kl->nil", K, np.swapaxes(R_rot, 1, 2), np.linalg.inv(K))  # pixel homography 0 -> j
+    p0 = np.concatenate([np.nan_to_num(uv[:, 0]), np.ones((len(uv), 1))], 1)
+    pred = np.einsum("nij,mj->mni", derot, p0)
+    parallax = np.linalg.norm(pred[..., :2] / pred[..., 2:] - uv, axis=-1)
+    med_par = np.array([np.median(parallax[visible[:, j] & visible[:, 0], j]) if common[j] >= min_tracks else 0.0
+                        for j in range(n)])
+    j = int(np.argmax(med_par))
+    diag = {"tracks": len(uv), "median_flow_px": float(med_flow.max()), "parallax_px": float(med_par[j])}
+    if med_par[j] < min_parallax_px:
+        return SfmResult(R_rot, zero, nan_points, NO_PARALLAX,
+                         f"image motion is a rotation only (median parallax {med_par[j]:.2f} px < "
+                         f"{min_parallax_px} px): translation and depth unobservable", diag)
+    pair = visible[:, 0] & visible[:, j]
+    E, mask = cv2.findEssentialMat(uv[pair, 0], uv[pair, j], K, method=cv2.RANSAC, prob=0.999, threshold=ransac_px)
+    if E is None or E.shape != (3, 3):
+        return SfmResult(R_rot, zero, nan_points, NO_PARALLAX, "essential matrix estimation failed", diag)
+    _, R_cw, t_cw, mask = cv2.recoverPose(E, uv[pair, 0], uv[pair, j], K, mask=mask)
+    R_wc, t_wc = eye.copy(), zero.copy()
+    R_wc[j], t_wc[j] = R_cw.T, -(R_cw.T @ t_cw).ravel()
+    inliers = np.flatnonzero(pair)[mask.ravel() > 0]
+    init_vis = np.zeros_like(visible)
+    init_vis[inliers, 0] = init_vis[inliers, j] = True
+    points = _clean_points(triangulate(uv, init_vis, R_wc, t_wc, K), uv, init_vis, R_wc, t_wc, K,
+                           max_reproj_px=max_reproj_px, min_angle_deg=min_angle_deg)
+    diag["initial_points"] = int(np.isfinite(points[:, 0]).sum())
+    if diag["initial_points"] < min_tracks:
+        return SfmResult(R_rot, zero, nan_points, NO_PARALLAX,
+                         f"two-view reconstruction of frames 0 and {j} too weak: {diag['initial_points']} points "
+                         f"triangulated with rays >= {min_angle_deg} deg apart (need {min_tracks}; median parallax "
+                         f"{med_par[j]:.2f} px): translation and depth unobservable", diag)
+    # Register every other frame against the initial structure (PnP inside RANSAC).
+    for i in range(1, n):
+        if i == j:
+            continue
+        sel = visible[:, i] & np.isfinite(points[:, 0])
+        if sel.sum() < 6:
+            return SfmResult(R_rot, zero, nan_points, FEW_FEATURES,
+                             f"frame {i} sees only {sel.sum()} triangulated points (need 6)", diag)
+        ok, rvec, tvec, _ = cv2.solvePnPRansac(points[sel], uv[sel, i], K, None, reprojectionError=2 * ransac_px,
+                                               iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
+        if not ok:
+            return SfmResult(R_rot, zero, nan_points, FEW_FEATURES, f"PnP failed for frame {i}", diag)
+        R_i = cv2.Rodrigues(rvec)[0]
+        R_wc[i], t_wc[i] = R_i.T, -(R_i.T @ tvec).ravel()
+    points = _clean_points(triangulate(uv, visible, R_wc, t_wc, K), uv, visible, R_wc, t_wc, K,
+                           max_reproj_px=max_reproj_px, min_angle_deg=min_angle_deg)
+    if bundle_adjust:
+        R_wc, t_wc, points = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations)
+        points = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px,
+                               min_angle_deg=min_angle_deg)
+    good = np.isfinite(points[:, 0])
+    proj, _ = _project(points[good], R_wc, t_wc, K)
+    err = np.linalg.norm(proj - uv[good], axis=-1)[visible[good]]
+    diag.update(points=int(good.sum()), reproj_px_median=float(np.median(err)) if err.size else float("nan"))
+    return SfmResult(R_wc, t_wc, points, OK, "ok", diag)
