@@ -92,6 +92,20 @@ class Preintegration:
         return ImuTrajectory(R=self.R, p=p, v=v, T_wc=T_wc)
 
 
+def integrate_rotations(grid: Grid, bg: np.ndarray) -> np.ndarray:
+    """R_B1B(t) [K,3,3] on the grid with the midpoint rate (w_k + w_{k+1}) / 2 - bg."""
+    dt = np.diff(grid.t)
+    return cumulative_rotations(so3.exp((0.5 * (grid.gyro[:-1] + grid.gyro[1:]) - bg) * dt[:, None]))
+
+
+def interval_gyro_mean(grid: Grid) -> np.ndarray:
+    """Time average of the raw gyro over each frame interval [n-1,3], rad/s (trapezoidal)."""
+    dt = np.diff(grid.t)
+    w_int = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (grid.gyro[:-1] + grid.gyro[1:]) * dt[:, None], 0)])
+    fi = grid.frame_idx
+    return np.diff(w_int[fi], axis=0) / np.diff(grid.t[fi])[:, None]
+
+
 def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.ndarray | None = None, *,
                  grid: Grid | None = None) -> Preintegration:
     """Preintegrate ``imu`` from stamps[0] to every stamp (see the module docstring for the scheme).
@@ -103,15 +117,13 @@ def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.nda
     bg = np.asarray(bg, dtype=np.float64)
     ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
     grid = grid or merged_grid(imu, stamps)
-    t, w, a, fi = grid.t, grid.gyro, grid.accel, grid.frame_idx
-    dt = np.diff(t)
-    R = cumulative_rotations(so3.exp((0.5 * (w[:-1] + w[1:]) - bg) * dt[:, None]))
-    f = np.einsum("kij,kj->ki", R, a - ba)
+    dt = np.diff(grid.t)
+    R = integrate_rotations(grid, bg)
+    f = np.einsum("kij,kj->ki", R, grid.accel - ba)
     dbeta = 0.5 * (f[:-1] + f[1:]) * dt[:, None]
     beta = np.concatenate([np.zeros((1, 3)), np.cumsum(dbeta, axis=0)])
     dalpha = beta[:-1] * dt[:, None] + (2.0 * f[:-1] + f[1:]) * (dt**2 / 6.0)[:, None]
     alpha = np.concatenate([np.zeros((1, 3)), np.cumsum(dalpha, axis=0)])
-    w_int = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (w[:-1] + w[1:]) * dt[:, None], axis=0)])
-    gyro_mean = np.diff(w_int[fi], axis=0) / np.diff(stamps)[:, None]
+    fi = grid.frame_idx
     return Preintegration(stamps=stamps, tau=stamps - stamps[0], R=R[fi], beta=beta[fi], alpha=alpha[fi],
-                          gyro_mean=gyro_mean, bg=bg, ba=ba)
+                          gyro_mean=interval_gyro_mean(grid), bg=bg, ba=ba)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from vi3_core import so3
-from vi3_core.preintegration import Grid, merged_grid, preintegrate
+from vi3_core.preintegration import Grid, integrate_rotations, merged_grid
 from vi3_core.types import ImuSamples
 
 
@@ -46,7 +46,7 @@ def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg:
     dR_vis = np.swapaxes(R_vis[i], 1, 2) @ R_vis[j]
     grid = grid or merged_grid(imu, stamps)
     for _ in range(iters):
-        R = preintegrate(imu, stamps, bg, grid=grid).R
+        R = integrate_rotations(grid, bg)[grid.frame_idx]
         r = so3.log(np.swapaxes(np.swapaxes(R[i], 1, 2) @ R[j], 1, 2) @ dR_vis)
         bg = bg - (dT * r).sum(0) / (dT**2).sum()
     return bg
