@@ -15,7 +15,7 @@ from vi3_core import so3
 
 def _linearise(R_cw, t_cw, X, uv, vis, K, huber_px):
     """Residuals [m,n,2], robust weights [m,n], Jacobians wrt camera [m,n,2,6] and point [m,n,2,3]."""
-    Xc = np.einsum("nij,mj->mni", R_cw, X) + t_cw[None]
+    Xc = np.einsum("nij,mj->mni", R_cw, X, optimize=True) + t_cw[None]
     z = np.where(vis, Xc[..., 2], 1.0)
     f = np.diag(K)[:2]
     r = np.where(vis[..., None], Xc[..., :2] / z[..., None] * f + K[:2, 2] - np.nan_to_num(uv), 0.0)
@@ -52,20 +52,20 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     for _ in range(iterations):
         Jc[:, 0] = 0.0  # frame 0 is the gauge
         WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
-        Hcc = np.einsum("mnri,mnrj->nij", WJc, Jc)[1:]  # [n-1,6,6]
-        Hll = np.einsum("mnri,mnrj->mij", WJl, Jl)  # [m,3,3]
-        Hcl = np.einsum("mnri,mnrj->mnij", WJc, Jl)[:, 1:]  # [m,n-1,6,3]
-        bc = np.einsum("mnri,mnr->ni", WJc, r)[1:]
-        bl = np.einsum("mnri,mnr->mi", WJl, r)
+        Hcc = np.einsum("mnri,mnrj->nij", WJc, Jc, optimize=True)[1:]  # [n-1,6,6]
+        Hll = np.einsum("mnri,mnrj->mij", WJl, Jl, optimize=True)  # [m,3,3]
+        Hcl = np.einsum("mnri,mnrj->mnij", WJc, Jl, optimize=True)[:, 1:]  # [m,n-1,6,3]
+        bc = np.einsum("mnri,mnr->ni", WJc, r, optimize=True)[1:]
+        bl = np.einsum("mnri,mnr->mi", WJl, r, optimize=True)
         Hcc_d = Hcc + lam * np.eye(6) * np.diagonal(Hcc, axis1=1, axis2=2)[:, :, None]
         Hll_d = Hll + lam * np.eye(3) * np.diagonal(Hll, axis1=1, axis2=2)[:, :, None] + 1e-9 * np.eye(3)
         Hll_inv = np.linalg.inv(Hll_d)
         Y = Hcl @ Hll_inv[:, None]  # [m,n-1,6,3]
-        S = -np.einsum("maij,mbkj->aibk", Y, Hcl)
+        S = -np.einsum("maij,mbkj->aibk", Y, Hcl, optimize=True)
         S[np.arange(n - 1), :, np.arange(n - 1), :] += Hcc_d
-        rhs = -bc + np.einsum("maij,mj->ai", Y, bl)
+        rhs = -bc + np.einsum("maij,mj->ai", Y, bl, optimize=True)
         dc = np.linalg.solve(S.reshape(6 * (n - 1), -1), rhs.ravel()).reshape(n - 1, 6)
-        dl = -np.einsum("mij,mj->mi", Hll_inv, bl + np.einsum("maji,aj->mi", Hcl, dc))
+        dl = -np.einsum("mij,mj->mi", Hll_inv, bl + np.einsum("maji,aj->mi", Hcl, dc, optimize=True))
         R_new, t_new = R_cw.copy(), t_cw.copy()
         R_new[1:] = so3.exp(dc[:, :3]) @ R_cw[1:]
         t_new[1:] = t_cw[1:] + dc[:, 3:]
