@@ -21,7 +21,7 @@ class AnchorOptions:
 
     steps: int = 160
     lr: float | None = None
-    lr_alpha: float = 1e-2
+    lr_alpha: float = 3e-3
     weight_decay: float = 0.01
     w_rot: float = 20.0
     w_pos: float = 10.0
