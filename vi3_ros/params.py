@@ -73,6 +73,32 @@ PARAMS: tuple[Param, ...] = (
     Param("imu_frame", "imu0", "IMU (body) frame, parent of camera_frame in /tf_static"),
     Param("publish_tf", False, "publish camera_frame -> clip_frame (the clip frame seen from the clip's last "
           "camera) so that the outputs hang off the live TF tree"),
+    # online state across clips and the odom trajectory (vi3_core.online)
+    Param("online", True, "carry the metric state (gravity, gyro bias, velocity) across clips as priors of each "
+          "clip's initialisation, and chain the clips into one odom trajectory; false: every clip on its own (paper)"),
+    Param("odom_frame", "odom", "frame of ~/odom and ~/path: continuous, gravity-aligned, z up (REP-105)"),
+    Param("base_frame", "base_link", "child frame of ~/odom and of the odom TF: the IMU (body) frame"),
+    Param("publish_odom_tf", False, "publish odom_frame -> base_frame on /tf at each clip's last frame (online only)"),
+    Param("outputs_in_odom", False, "express ~/poses and ~/points in odom_frame instead of clip_frame (online only; "
+          "a clip that is not chained keeps clip_frame)"),
+    Param("path_max_poses", 5000, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
+    Param("online_max_gap", 1.0, "s; a longer gap between clips resets the online state (GT-free initialisation)",
+          range=(0.01, 3600.0)),
+    Param("online_gravity_tol", 30.0, "deg; the gravity prior is dropped for a clip when it is farther than this from "
+          "the clip's own estimate (or fits the positions clearly worse, see online_residual_ratio)",
+          range=(0.1, 180.0)),
+    Param("online_residual_ratio", 4.0, "a prior (gravity, velocity) is dropped when the position residual with it "
+          "exceeds this times the residual without it (and online_residual_floor)", range=(1.0, 1000.0)),
+    Param("online_residual_floor", 0.03, "m; position residual always tolerated for a prior",
+          range=(0.0, 100.0)),
+    Param("online_scale_ratio", 2.0, "the velocity prior is dropped when the scale it implies differs from the "
+          "clip's free position fit by more than this factor", range=(1.01, 100.0)),
+    Param("online_bg_gain", 0.2, "weight of each clip's own gyro-bias estimate in the filtered bias",
+          range=(0.0, 1.0)),
+    Param("online_gravity_gain", 0.1, "weight of each clip's own gravity estimate when it refines the gravity prior",
+          range=(0.0, 1.0)),
+    Param("online_velocity_weight", 0.05, "s; weight of the velocity prior against the positions in the scale fit",
+          range=(0.0, 1000.0)),
     # clip buffer
     Param("clip_length", 8, "frames per clip (n)", range=(2, 64)),
     Param("stride", 2, "use every stride-th input frame", range=(1, 100)),

@@ -10,7 +10,12 @@ is published first on ``~/init/poses``, ``~/init/depth`` and ``~/init/points``. 
 ``~/status`` (key ``result``: init | cond | ttr | none | skipped).
 
 Frames (see docs/node.md): poses and points are in ``clip_frame``, the clip's first camera (OpenCV optical axes,
-metric); depth images in ``camera_frame``; TF ``camera_frame -> clip_frame`` at the clip's last frame stamp.
+metric), or in ``odom_frame`` with ``outputs_in_odom``; depth images in ``camera_frame``; TF ``camera_frame ->
+clip_frame`` at the clip's last frame stamp.
+
+With ``online`` (``vi3_core.online``), each clip's initialisation takes the priors carried from the previous clips,
+and the clips are chained into one continuous odom trajectory: ``~/odom``, ``~/path`` and TF ``odom_frame ->
+base_frame`` (``publish_odom_tf``); the status names the priors used, dropped (with the reason) and resets.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ import numpy as np
 from msg_adapters.diagnostics import DiagStatus, Level, diagnostic_array
 from msg_adapters.image import depth_to_image
 from msg_adapters.pointcloud import point_cloud2
-from msg_adapters.poses import pose_array, tf_message
+from msg_adapters.poses import odometry, path, pose_array, tf_message
 from msg_adapters.types import MessageTypes
 from vi3_core.anchor import AnchorOptions, anchor, check_mode
 from vi3_core.backbones import make_backbone
@@ -35,6 +40,7 @@ from vi3_core.dataset.calib import CameraCalib, load_calib
 from vi3_core.errors import CalibrationError
 from vi3_core.init import validate
 from vi3_core.init.options import InitOptions
+from vi3_core.online import ChainedClip, OnlineEstimator, OnlineOptions
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
 from vi3_ros.worker import Worker
@@ -58,6 +64,8 @@ OUTPUTS: dict[str, Output] = {
     "status": Output("~/status", "diagnostic_msgs/msg/DiagnosticArray"),
     "diagnostics": Output("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
     "tf": Output("/tf", "tf2_msgs/msg/TFMessage"),
+    "odom": Output("~/odom", "nav_msgs/msg/Odometry"),
+    "path": Output("~/path", "nav_msgs/msg/Path"),
 }
 STATUS_NAME = "vi3: clip"
 DIAG_NAME = "vi3: pipeline"
@@ -71,11 +79,22 @@ class OutputSink(Protocol):
 
 
 def buffer_options(values: dict[str, Any]) -> ClipBufferOptions:
-    """ClipBufferOptions from parameter values (see vi3_ros.params)."""
+    """ClipBufferOptions from parameter values (see vi3_ros.params). With ``online``, the IMU history covers the
+    bridge from the previous clip (up to ``online_max_gap``)."""
+    history = max(values["imu_history"], values["online_max_gap"]) if values["online"] else values["imu_history"]
     return ClipBufferOptions(n=values["clip_length"], stride=values["stride"], hop=values["hop"] or None,
                              max_frame_gap=values["max_frame_gap"], time_offset=values["time_offset"],
                              imu_capacity=values["imu_buffer"], imu_timeout=values["imu_timeout"],
-                             history=values["imu_history"], max_pending=values["max_pending"])
+                             history=history, max_pending=values["max_pending"])
+
+
+def online_options(values: dict[str, Any]) -> OnlineOptions:
+    """OnlineOptions from parameter values (see vi3_ros.params)."""
+    return OnlineOptions(max_gap_s=values["online_max_gap"], bg_gain=values["online_bg_gain"],
+                         gravity_gain=values["online_gravity_gain"], gravity_tol_deg=values["online_gravity_tol"],
+                         residual_ratio=values["online_residual_ratio"],
+                         residual_floor_m=values["online_residual_floor"], scale_ratio=values["online_scale_ratio"],
+                         v1_weight_s=values["online_velocity_weight"])
 
 
 def calib_from_camera_info(K: np.ndarray, dist_model: str, dist: np.ndarray, size: tuple[int, int],
@@ -203,6 +222,9 @@ class Pipeline:
         self._anchor_options = AnchorOptions(steps=values["ttr_steps"])
         self._init_options = InitOptions(min_accel_rms=values["min_accel_rms"], max_imu_gap_s=values["max_imu_gap"])
         self._on_report = on_report
+        self.online = OnlineEstimator(options=online_options(values), init_options=self._init_options) \
+            if values["online"] else None
+        self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
         self._lock = threading.Lock()  # guards the buffer and counters (executor thread vs worker thread)
         self._input_drops: collections.Counter[str] = collections.Counter()
         self.outcomes: collections.Counter[str] = collections.Counter()
@@ -263,11 +285,17 @@ class Pipeline:
                 self._publish_geometry(raw, result.geometry, prefix="init_")
                 self._publish_status(raw, result.init, result, "init", time.perf_counter() - t_start)
 
+        online = self.online
         result = anchor(clip, self.backbone, mode=self.values["mode"], options=self._anchor_options,
-                        init_options=self._init_options, on_init=on_init)
+                        init_options=self._init_options, on_init=on_init,
+                        init=(lambda base: online.initialise(clip, base)) if online is not None else None)
+        chained = online.update(clip, result) if online is not None else None
         latency = time.perf_counter() - t_start
         if result.init.ok and result.mode != "none":
-            self._publish_geometry(raw, result.geometry, prefix="")
+            T_OC1 = chained.T_OB[0] @ clip.T_BC if chained is not None and self.values["outputs_in_odom"] else None
+            self._publish_geometry(raw, result.geometry, prefix="", T_OC1=T_OC1)
+        if chained is not None:
+            self._publish_odom(raw, clip, chained)
         self._publish_status(raw, result.init, result, result.mode if result.init.ok else "none", latency)
 
     def _on_error(self, raw: RawClip, exc: BaseException) -> None:
@@ -279,11 +307,15 @@ class Pipeline:
 
     # ---- outputs --------------------------------------------------------------------------------------------
 
-    def _publish_geometry(self, raw: RawClip, geometry: Geometry, *, prefix: str) -> None:
+    def _publish_geometry(self, raw: RawClip, geometry: Geometry, *, prefix: str,
+                          T_OC1: np.ndarray | None = None) -> None:
+        """Poses, depth, points (and the clip TF) of a result; with ``T_OC1`` [4,4] (the clip's first camera in
+        odom) poses and points are expressed in ``odom_frame``."""
         v, types = self.values, self.types
         stamp = int(raw.stamps_ns[-1])
-        self.sink.publish(prefix + "poses", pose_array(geometry.T_wc, stamp_ns=stamp, frame_id=v["clip_frame"],
-                                                       types=types), stamp)
+        frame = v["clip_frame"] if T_OC1 is None else v["odom_frame"]
+        T_wc = geometry.T_wc if T_OC1 is None else T_OC1 @ geometry.T_wc
+        self.sink.publish(prefix + "poses", pose_array(T_wc, stamp_ns=stamp, frame_id=frame, types=types), stamp)
         frames = np.arange(geometry.n) if v["depth_frames"] == "all" else np.array([geometry.n - 1])
         for i in frames:
             s = int(raw.stamps_ns[i])
@@ -292,12 +324,35 @@ class Pipeline:
         frames = np.arange(geometry.n) if v["points_frames"] == "all" else np.array([geometry.n - 1])
         pts, conf = cloud_points(geometry, frames, stride=v["points_stride"], conf_quantile=v["points_conf_quantile"],
                                  max_depth=v["points_max_depth"])
+        if T_OC1 is not None:
+            pts = (pts.astype(np.float64) @ T_OC1[:3, :3].T + T_OC1[:3, 3]).astype(np.float32)
         self.sink.publish(prefix + "points", point_cloud2(pts, confidence=conf, stamp_ns=stamp,
-                                                          frame_id=v["clip_frame"], types=types), stamp)
+                                                          frame_id=frame, types=types), stamp)
         if v["publish_tf"] and not prefix:
             T_last_clip = np.linalg.inv(geometry.T_wc[-1])
             self.sink.publish("tf", tf_message([(T_last_clip, v["camera_frame"], v["clip_frame"], stamp)],
                                                types=types), stamp)
+
+    def _publish_odom(self, raw: RawClip, clip: Clip, chained: ChainedClip) -> None:
+        """~/odom (pose and twist of base_frame at the clip's last frame), ~/path (the latest ``path_max_poses``
+        poses of the odom trajectory) and, with ``publish_odom_tf``, TF odom_frame -> base_frame."""
+        v, types = self.values, self.types
+        stamp = int(raw.stamps_ns[-1])
+        T = chained.T_OB[-1]
+        gyro = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)])
+        self.sink.publish("odom", odometry(T, T[:3, :3].T @ chained.v_O[-1], gyro - self.online.state.bg,
+                                           stamp_ns=stamp, frame_id=v["odom_frame"], child_frame_id=v["base_frame"],
+                                           types=types), stamp)
+        traj = self.online.trajectory
+        keep = slice(max(len(traj.stamps) - v["path_max_poses"], 0), None)
+        # The header stamps of the frames (exact ns), kept for the poses the path still shows.
+        self._path_ns.update(zip(clip.stamps.tolist(), raw.stamps_ns.tolist()))
+        self._path_ns = {t: self._path_ns[t] for t in traj.stamps[keep].tolist()}
+        stamps_ns = list(self._path_ns.values())
+        self.sink.publish("path", path(traj.T_OB[keep], stamp_ns=stamp, frame_id=v["odom_frame"], types=types,
+                                       stamps_ns=stamps_ns), stamp)
+        if v["publish_odom_tf"]:
+            self.sink.publish("tf", tf_message([(T, v["odom_frame"], v["base_frame"], stamp)], types=types), stamp)
 
     def _take_input_drops(self) -> str:
         with self._lock:
@@ -320,6 +375,8 @@ class Pipeline:
                   "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
                   "bg": _vec(init.bg), "t_first": f"{raw.stamps[0]:.9f}", "t_last": f"{raw.stamps[-1]:.9f}",
                   "input_drops": drops, "latency_ms": f"{latency * 1e3:.1f}"}
+        if "online" in init.diagnostics:
+            values["online"] = init.diagnostics["online"]
         if result is not None and kind != "init":
             values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                            for k, a in sorted(result.losses.items()) if np.asarray(a).size})

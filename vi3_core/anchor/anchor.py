@@ -14,7 +14,7 @@ from vi3_core.backbones.base import CAP_COND_INTRINSICS, CAP_COND_POSE, CAP_TTR,
 from vi3_core.errors import ModeNotSupported
 from vi3_core.init import InitOptions, initialise_clip
 from vi3_core.init.gravity_seeds import geocalib_available, geocalib_seed
-from vi3_core.types import AnchorResult, Clip, InitResult
+from vi3_core.types import AnchorResult, Clip, Geometry, InitResult
 
 _REQUIRED = {"cond": CAP_COND_POSE, "ttr": CAP_TTR}
 
@@ -30,13 +30,15 @@ def check_mode(backbone: Backbone, mode: str) -> None:
 
 
 def anchor(clip: Clip, backbone: Backbone, *, mode: str = "init", options: AnchorOptions | None = None,
-           init_options: InitOptions | None = None, init: InitResult | None = None,
+           init_options: InitOptions | None = None,
+           init: InitResult | Callable[[Geometry], InitResult] | None = None,
            on_init: Callable[[AnchorResult], None] | None = None) -> AnchorResult:
     """Metric geometry for one clip.
 
     mode "init": the initialisation's scale applied to translation and depth (no gradient steps);
     "cond": the IMU target poses (and intrinsics where supported) fed to a conditioning-capable backbone;
-    "ttr": test-time refinement. ``init`` overrides the GT-free initialisation (e.g. ``oracle_init``).
+    "ttr": test-time refinement. ``init`` overrides the GT-free initialisation (e.g. ``oracle_init``); a callable
+    receives the base geometry and returns the InitResult (``vi3_core.online`` builds it from the stream's priors).
     ``on_init`` receives the fast init-mode result before any refinement starts (the node publishes it).
     A clip whose initialisation is not ok is returned unscaled with mode "none" and the reason in ``status``;
     bad data never raises. An unknown or unsupported mode raises before the backbone runs.
@@ -50,7 +52,11 @@ def anchor(clip: Clip, backbone: Backbone, *, mode: str = "init", options: Ancho
     base = base_pred.geometry()
     timings["backbone_s"] = time.perf_counter() - t0
 
-    if init is None:
+    if callable(init):
+        t1 = time.perf_counter()
+        init = init(base)
+        timings["init_s"] = time.perf_counter() - t1
+    elif init is None:
         t1 = time.perf_counter()
         seeds = None
         if options.geocalib and geocalib_available():

@@ -9,6 +9,7 @@ rejected or unobservable init has no metric output; it is counted in ``status_co
 from __future__ import annotations
 
 import json
+import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
 
@@ -101,3 +102,20 @@ def format_ablation(summaries: dict[str, dict]) -> str:
     rows = [[name, *(_fmt(s["vi3"][k], k) for k in geo), *(_fmt(s["init"][k], k) for k in ini),
              f"{s['n_ok']}/{s['n_clips']}"] for name, s in summaries.items()]
     return "Initialisation ablations (supplementary tables), median over clips\n\n" + _grid(header, rows)
+
+
+def chained_summary(run) -> dict:
+    """The ``chained`` JSON object of a ``runner.OnlineRun``: ``ate_m``, ``drift_pct``, ``gravity_err_deg``,
+    ``resets`` (None when fewer than 2 poses were chained), ``distance_m``, ``frames`` and the per-clip
+    ``decisions`` (priors used, rejected with reasons, resets)."""
+    m = run.metrics.as_dict() if run.metrics is not None else dict.fromkeys(
+        ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m", "frames"))
+    m = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.items()}
+    return {**m, "decisions": list(run.decisions)}
+
+
+def format_chained(chained: dict) -> str:
+    """One table of the chained trajectory's metrics."""
+    keys = ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m")
+    return "Chained odom trajectory (yaw + position of the first pose aligned)\n" + _grid(
+        list(keys), [[_fmt(chained[k], k) if not isinstance(chained[k], int) else str(chained[k]) for k in keys]])

@@ -11,7 +11,8 @@ produced them and no depth value is invented.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm import tqdm
@@ -21,9 +22,11 @@ from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.sequence import Sequence, make_clip, sample_clips
 from vi3_core.errors import DataError
 from vi3_core.eval import metrics
+from vi3_core.eval.chained import ChainedMetrics, chained_metrics
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.init import InitOptions, oracle_init
-from vi3_core.types import AnchorResult, Clip, Geometry
+from vi3_core.online import OnlineEstimator, OnlineOptions
+from vi3_core.types import AnchorResult, Clip, Geometry, InitResult
 
 INIT_SOURCES = ("vi3", "gt")
 CLIP_SAMPLING = ("paper", "sliding")
@@ -75,13 +78,13 @@ def _column_metrics(geometry: Geometry, T_gt: np.ndarray, depth_gt: np.ndarray |
     return metrics.geometry_metrics(geometry.T_wc, T_gt, geometry.depth if depth_gt is not None else None, depth_gt)
 
 
-def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indices: np.ndarray | None = None
-                  ) -> ClipEval:
-    """Anchor ``clip`` (which must carry ground truth) and compute every metric of the paper on it."""
+def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indices: np.ndarray | None = None,
+                  init: Callable[[Geometry], InitResult] | None = None) -> ClipEval:
+    """Anchor ``clip`` (which must carry ground truth) and compute every metric of the paper on it. ``init``
+    (with ``init_source`` "vi3") builds the initialisation from the base geometry (``vi3_core.online``)."""
     if clip.gt is None:
         raise DataError(f"evaluate_clip: the clip at t = {clip.stamps[0]:.6f}..{clip.stamps[-1]:.6f} s has no ground "
                         "truth (the GT track does not cover it); evaluation needs GT poses and velocities")
-    init = None
     if options.init_source == "gt":
         init = oracle_init(clip, backbone.predict(clip.images, clip.K))
     fast: list[AnchorResult] = []
@@ -138,3 +141,45 @@ def ablate(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = N
     return {name: evaluate_sequence(seq, backbone, options=dataclasses.replace(
                 options, mode="init", init_source="vi3", init_options=dataclasses.replace(base, **overrides)))
             for name, overrides in ABLATIONS.items()}
+
+
+@dataclass
+class OnlineRun:
+    """The chained run of a sequence: stamps [N] s, T_OB [N,4,4] the odom trajectory, T_WB [N,4,4] GT body
+    poses at the same stamps, decisions: the estimator's description of each clip, metrics (None with < 2 poses)."""
+
+    stamps: np.ndarray
+    T_OB: np.ndarray
+    T_WB: np.ndarray
+    decisions: list[str] = field(default_factory=list)
+    metrics: ChainedMetrics | None = None
+
+
+def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None,
+                    online_options: OnlineOptions | None = None,
+                    clips: list[np.ndarray] | None = None) -> tuple[list[ClipEval], OnlineRun]:
+    """``evaluate_sequence`` with the metric state carried across clips (``vi3_core.online``, GT-free): each clip's
+    initialisation from the stream's priors, and the clips chained into one odom trajectory, scored against GT.
+    ``clips`` overrides the sampled frame indices (a test leaves a gap in the images)."""
+    options = options or EvalOptions()
+    if options.init_source != "vi3":
+        raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
+    if seq.gt is None:
+        raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
+    est = OnlineEstimator(options=online_options, init_options=options.init_options)
+    evals, decisions, gt_by_stamp = [], [], {}
+    for idx in tqdm(clip_indices(len(seq.stamps), options=options) if clips is None else clips,
+                    desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
+        clip = make_clip(seq, idx)
+        ev = evaluate_clip(clip, backbone, options=options, indices=idx,
+                           init=lambda base, clip=clip: est.initialise(clip, base))
+        est.update(clip, ev.result)
+        decisions.append(est.last.describe())
+        gt_by_stamp.update(zip(clip.stamps.tolist(), clip.gt.T_WB))
+        evals.append(ev)
+    traj = est.trajectory
+    T_WB = np.array([gt_by_stamp[t] for t in traj.stamps.tolist()]).reshape(-1, 4, 4)
+    run = OnlineRun(traj.stamps, traj.T_OB, T_WB, decisions)
+    if len(traj.stamps) >= 2:
+        run.metrics = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets))
+    return evals, run

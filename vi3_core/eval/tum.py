@@ -45,3 +45,12 @@ def export_tum(out_dir: str | Path, evals: Sequence[ClipEval]) -> list[Path]:
     out_dir = Path(out_dir)
     return [write_tum(out_dir / f"clip{k:03d}_{name}.txt", e.stamps, T)
             for k, e in enumerate(evals) for name, T in e.trajectories().items()]
+
+
+def export_chained(out_dir: str | Path, run) -> list[Path]:
+    """Write the chained odom trajectory (``runner.OnlineRun``) as ``odom_vi3.txt`` (body poses in odom) and
+    ``odom_gt.txt`` (GT body poses at the same stamps); compare with ``evo_ape tum odom_gt.txt odom_vi3.txt -a``
+    (evo's alignment is 6-DoF; ``vi3 eval`` aligns only yaw and position)."""
+    out_dir = Path(out_dir)
+    return [write_tum(out_dir / "odom_vi3.txt", run.stamps, run.T_OB),
+            write_tum(out_dir / "odom_gt.txt", run.stamps, run.T_WB)]

@@ -36,10 +36,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ablate", action="store_true",
                    help="initialisation ablations: TLS vs OLS, all-pairs vs first-pair v1, gravity consensus on/off "
                         "(each variant in init mode with the GT-free init; --mode and --init are ignored)")
+    p.add_argument("--independent", action="store_true",
+                   help="every clip on its own, as in the paper (default: the metric state is carried across clips "
+                        "and the clips are chained into one odom trajectory; always independent with --init gt)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON object to FILE")
     p.add_argument("--plot", default=None, metavar="PNG", help="write the trajectory / point-cloud plot here")
-    p.add_argument("--export-tum", default=None, metavar="DIR", help="write TUM trajectories (for evo) here")
+    p.add_argument("--export-tum", default=None, metavar="DIR",
+                   help="write TUM trajectories (for evo) here: per clip, and the chained odom_vi3.txt / odom_gt.txt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -52,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from vi3_core.eval import plot, report, runner, tum
     from vi3_ros.io.reader import open_sequence
 
+    online = None
     try:
         seq = open_sequence(args.input, calib=args.calib)
         backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
@@ -65,10 +70,15 @@ def run(args: argparse.Namespace) -> int:
             summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
             text, obj = report.format_ablation(summaries), {"ablations": summaries}
             evals = next(iter(variants.values()))
-        else:
+        elif args.independent or args.init_source == "gt":
             evals = runner.evaluate_sequence(seq, backbone, options=options)
             obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
             text = report.format_tables(obj)
+        else:
+            evals, online = runner.evaluate_online(seq, backbone, options=options)
+            obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
+            obj["chained"] = report.chained_summary(online)
+            text = report.format_tables(obj) + "\n" + report.format_chained(obj["chained"])
         print(report.to_json(obj) if args.json else text)
         if args.json_out:
             Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
@@ -78,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"plot: {path}", file=sys.stderr)
         if args.export_tum:
             paths = tum.export_tum(args.export_tum, evals)
+            if online is not None:
+                paths += tum.export_chained(args.export_tum, online)
             print(f"TUM trajectories: {len(paths)} files in {args.export_tum}", file=sys.stderr)
     except (Vi3Error, ValueError, OSError) as exc:
         print(f"vi3 eval: error: {exc}", file=sys.stderr)

@@ -1,0 +1,158 @@
+"""``vi3_core.online``: priors carried across clips, their consistency tests and reset, the chained odom trajectory,
+and the odom outputs of replay. Estimator tests use the ground-truth camera poses of a generated sequence as the
+"backbone" (up to a scale of 1/3, with a few millimetres of noise, like a 3DFM's), so they run in seconds."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+
+from msg_adapters.diagnostics import diagnostic_array_to_statuses
+from msg_adapters.poses import odometry_to_numpy, poses_to_T, tf_message_to_list
+from msg_adapters.stamps import stamp_to_ns
+from vi3_core.dataset.asl import read_asl
+from vi3_core.dataset.calib import write_euroc_sensor_yaml
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.eval.chained import chained_metrics
+from vi3_core.eval.metrics import gt_camera_poses
+from vi3_core.eval.tum import read_tum
+from vi3_core.init import initialise_clip
+from vi3_core.init.position_fit import fit_positions
+from vi3_core.online import OnlineEstimator
+from vi3_core.preintegration import preintegrate
+from vi3_core.types import AnchorResult, Geometry
+from vi3_ros.cli import main as vi3_main
+
+TRUE_SCALE = 3.0  # metric = 3 x the fake backbone's translation
+
+
+@pytest.fixture(scope="module")
+def seq(cache_dir):
+    return read_asl(cached_sequence(cache_dir, seconds=10.0, seed=0, with_depth=False))
+
+
+def _geometry(clip, noise_m: float, rng: np.random.Generator) -> Geometry:
+    """GT camera poses in C1 with ``noise_m`` of position noise, divided by TRUE_SCALE; flat depth."""
+    T = gt_camera_poses(clip.gt, clip.T_BC).copy()
+    T[1:, :3, 3] += rng.normal(0.0, noise_m, (clip.n - 1, 3))
+    T[:, :3, 3] /= TRUE_SCALE
+    n = clip.n
+    return Geometry(T, np.repeat(clip.K[None], n, 0), np.full((n, 4, 4), 1.0), np.ones((n, 4, 4)))
+
+
+def _run(seq, *, noise_m: float = 0.003, clips=None, corrupt_at: int | None = None):
+    """The estimator over sliding clips: (estimator, per-clip online scale errors, GT-free scale errors, decisions)."""
+    rng = np.random.default_rng(0)
+    est = OnlineEstimator()
+    online, free, decisions = [], [], []
+    for k, idx in enumerate(clips or sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")):
+        if k == corrupt_at:
+            est.state = replace(est.state, v_O=est.state.v_O + np.array([2.0, 0.0, 0.0]))  # a wrong velocity prior
+        clip = make_clip(seq, idx, with_depth=False)
+        geo = _geometry(clip, noise_m, rng)
+        free.append(abs(initialise_clip(clip, geo).scale / TRUE_SCALE - 1.0))
+        init = est.initialise(clip, geo)
+        result = AnchorResult(geometry=geo.scaled(init.scale) if init.ok else geo, base=geo, init=init,
+                              mode="init" if init.ok else "none", alpha=init.scale, target=init.target)
+        est.update(clip, result)
+        online.append(abs(init.scale / TRUE_SCALE - 1.0))
+        decisions.append(est.last.describe())
+    return est, np.array(online), np.array(free), decisions
+
+
+def test_position_fit_recovers_scale_and_velocity_of_exact_geometry(seq):
+    clip = make_clip(seq, sample_clips(len(seq.stamps), mode="sliding")[2], with_depth=False)
+    R1 = clip.gt.T_WB[0, :3, :3]
+    g, v1 = R1.T @ clip.gt.g_W, R1.T @ clip.gt.v_WB[0]
+    pre = preintegrate(clip.imu, clip.stamps, clip.gt.bg)
+    geo = _geometry(clip, 0.0, np.random.default_rng(0))
+    joint = fit_positions(geo.T_wc, pre, clip.T_BC, g)
+    fixed = fit_positions(geo.T_wc, pre, clip.T_BC, g, v1=v1)
+    assert abs(joint.scale / TRUE_SCALE - 1) < 0.02 and np.linalg.norm(joint.v1 - v1) < 0.05
+    assert abs(fixed.scale / TRUE_SCALE - 1) < 0.02 and fixed.rms < 0.02
+
+
+def test_priors_improve_scale_over_independent_clips_and_chain_stays_level(seq):
+    est, online, free, decisions = _run(seq)
+    assert sum(d.startswith("priors: g,v1,bg") for d in decisions) >= len(decisions) // 2, decisions
+    after = slice(3, None)
+    assert np.nanmedian(online[after]) <= 0.5 * np.nanmedian(free[after]), (online, free)
+    traj = est.trajectory
+    T_WB = seq.gt.at(traj.stamps).T_WB
+    m = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets))
+    assert len(traj.stamps) == len(np.unique(traj.stamps)) and np.all(np.diff(traj.stamps) > 0)
+    assert m.gravity_err_deg < 1.0 and m.drift_pct < 10.0 and m.resets == 0, m
+
+
+def test_determinism(seq):
+    a, b = _run(seq)[0].trajectory, _run(seq)[0].trajectory
+    assert np.array_equal(a.stamps, b.stamps) and np.array_equal(a.T_OB, b.T_OB)
+
+
+def test_image_gap_resets_and_recovers_within_three_clips(seq):
+    clips = [idx for idx in sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
+             if not 4.0 <= seq.stamps[idx[0]] - seq.stamps[0] < 6.0]  # 2 s without images
+    est, _, _, decisions = _run(seq, clips=clips)
+    k = next(i for i, d in enumerate(decisions) if "reset: gap" in d)
+    assert k > 0 and any(d.startswith("priors: g,v1,bg") for d in decisions[k + 1:k + 4]), decisions
+    assert len(est.trajectory.resets) == 1
+
+
+def test_corrupted_velocity_prior_is_rejected_and_named(seq):
+    baseline = _run(seq)[3]
+    k = next(i for i, d in enumerate(baseline) if i >= 2 and d.startswith("priors: g,v1,bg"))
+    decisions = _run(seq, corrupt_at=k)[3]
+    assert decisions[:k] == baseline[:k]
+    assert "v1 prior rejected" in decisions[k] and decisions[k].startswith("priors: g,bg"), decisions[k]
+
+
+def _read(path) -> dict[str, list]:
+    out: dict[str, list] = {}
+    with AnyReader([path]) as reader:
+        for conn, _, raw in reader.messages():
+            out.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+    return out
+
+
+def test_replay_writes_odometry_path_and_tf_in_odom(cache_dir, tmp_path):
+    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+    calib = tmp_path / "cam0.yaml"
+    write_euroc_sensor_yaml(EUROC_CAM0, calib)
+    out = tmp_path / "out.mcap"
+    assert vi3_main(["replay", str(asl), "--output", str(out), "--calib", str(calib), "--backbone", "classical",
+                     "--no-progress", "--param", "publish_odom_tf=true", "--param", "outputs_in_odom=true"]) == 0
+    msgs = _read(out)
+    odom, paths = msgs["/vi3_node/odom"], msgs["/vi3_node/path"]
+    assert len(odom) == len(paths) >= 2
+    assert {(o.header.frame_id, o.child_frame_id) for o in odom} == {("odom", "base_link")}
+    tfs = [t for m in msgs["/tf"] for t in tf_message_to_list(m)]
+    assert [(p, c) for _, p, c, _ in tfs] == [("odom", "base_link")] * len(odom)
+    T_last = odometry_to_numpy(odom[-1])[0]
+    np.testing.assert_allclose(tfs[-1][0], T_last, atol=1e-9)
+    path_T = poses_to_T([p.pose for p in paths[-1].poses])
+    np.testing.assert_allclose(path_T[-1], T_last, atol=1e-9)
+    stamps = [stamp_to_ns(p.header.stamp) for p in paths[-1].poses]
+    assert stamps == sorted(set(stamps)) and stamps[-1] == stamp_to_ns(odom[-1].header.stamp)
+    assert {p.header.frame_id for p in msgs["/vi3_node/poses"]} == {"odom"}
+    statuses = [s for m in msgs["/vi3_node/status"] for s in diagnostic_array_to_statuses(m)]
+    assert all("online" in s.values for s in statuses if s.values.get("result") == "init")
+
+
+def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
+    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+    common = ["eval", str(asl), "--json", "--clips", "sliding", "--max-clips", "2", "--no-progress"]
+    assert vi3_main([*common, "--export-tum", str(tmp_path)]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    chained = obj["chained"]
+    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets"} <= set(chained) and chained["resets"] == 0
+    assert all(np.isfinite(chained[k]) for k in ("ate_m", "drift_pct", "gravity_err_deg"))
+    assert len(chained["decisions"]) == obj["n_clips"] == 2 and obj["vi3"]["scale_traj"] is not None
+    stamps, T = read_tum(tmp_path / "odom_vi3.txt")
+    assert len(stamps) == chained["frames"] == 16 and np.all(np.diff(stamps) > 0)
+    assert vi3_main([*common, "--independent"]) == 0
+    assert "chained" not in json.loads(capsys.readouterr().out)

@@ -1,0 +1,9 @@
+"""Online metric state across clips (beyond the paper): priors carried from clip to clip, their consistency tests
+and reset, and the chaining of the clips into one continuous, gravity-aligned odom trajectory (REP-105)."""
+
+from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
+from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator
+from vi3_core.online.options import OnlineOptions
+
+__all__ = ["ChainedClip", "OdomState", "OnlineDecision", "OnlineEstimator", "OnlineOptions", "Trajectory",
+           "gravity_align"]
