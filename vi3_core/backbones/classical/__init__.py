@@ -98,7 +98,7 @@ class ClassicalBackbone(Backbone):
     ttr_lr = 1e-4
 
     def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
-                 downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24, n_sources: int = 3,
+                 downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24, n_sources: int = 2,
                  best_k: int = 2, window: int = 7, bundle_adjust: bool = True) -> None:
         super().__init__(device=device, dtype=dtype)
         if downscale < 1:

@@ -45,7 +45,7 @@ def pixel_rays(K: torch.Tensor, h: int, w: int) -> torch.Tensor:
 
 
 def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: torch.Tensor,
-                depth_range: torch.Tensor, *, n_depths: int = 24, n_sources: int = 3, best_k: int = 2,
+                depth_range: torch.Tensor, *, n_depths: int = 24, n_sources: int = 2, best_k: int = 2,
                 window: int = 7, temperature: float = 0.05, min_var: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
     """Depth and confidence of every frame.
 
