@@ -16,7 +16,8 @@ from vi3_core.backbones import make_backbone
 from vi3_core.backbones.base import Condition
 from vi3_core.backbones.bench import bench_backbone
 from vi3_core.backbones.classical import ClassicalBackbone
-from vi3_core.backbones.classical.mvs import pixel_rays, plane_sweep
+from vi3_core.backbones.classical.mvs import plane_sweep
+from vi3_core.camera_torch import pixel_rays
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
@@ -95,7 +96,8 @@ def test_scale_is_normalised_like_vggt(half_clip):
     with torch.no_grad():
         pred = backbone.forward(backbone.preprocess(*half_clip))
     h, w = pred.depth.shape[1:]
-    pts = torch.einsum("nij,jhw->nihw", pred.R_wc, pixel_rays(pred.K[0], h, w)) * pred.depth[:, None]
+    rays = pixel_rays(pred.K[0], h, w).T.reshape(3, h, w)
+    pts = torch.einsum("nij,jhw->nihw", pred.R_wc, rays) * pred.depth[:, None]
     dist = (pts + pred.t_wc[:, :, None, None]).norm(dim=1)
     assert float((pred.conf * dist).sum() / pred.conf.sum()) == pytest.approx(1.0, rel=1e-4)
     assert pred.metric is False

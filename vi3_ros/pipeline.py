@@ -36,6 +36,7 @@ from msg_adapters.poses import odometry, path, pose_array, tf_message
 from msg_adapters.types import MessageTypes
 from vi3_core.anchor import AnchorOptions, anchor, check_mode
 from vi3_core.backbones import make_backbone
+from vi3_core.camera import backproject
 from vi3_core.dataset.calib import CameraCalib, load_calib
 from vi3_core.errors import CalibrationError
 from vi3_core.init import validate
@@ -171,21 +172,13 @@ def cloud_points(geometry: Geometry, frames: np.ndarray, *, stride: int, conf_qu
     Keeps every ``stride``-th pixel in each direction whose depth is finite, in (0, max_depth], and whose
     confidence is at least the ``conf_quantile`` quantile of the clip's confidences. Returns points [N,3] float32
     and confidence [N] float32. Vectorised over all selected frames."""
-    depth = geometry.depth[frames, ::stride, ::stride].astype(np.float64)
-    conf = geometry.conf[frames, ::stride, ::stride].astype(np.float64)
-    f, h, w = depth.shape
-    v, u = np.meshgrid(np.arange(h) * stride, np.arange(w) * stride, indexing="ij")
-    K = geometry.K[frames]
-    x = (u[None] - K[:, 0, 2, None, None]) / K[:, 0, 0, None, None] * depth
-    y = (v[None] - K[:, 1, 2, None, None]) / K[:, 1, 1, None, None] * depth
-    X = np.stack([x, y, depth], -1).reshape(f, -1, 3)
-    T = geometry.T_wc[frames]
-    P = np.einsum("fij,fnj->fni", T[:, :3, :3], X) + T[:, None, :3, 3]
+    P, d = backproject(geometry.depth[frames], geometry.K[frames], geometry.T_wc[frames], stride=stride)
+    conf = geometry.conf[frames, ::stride, ::stride].astype(np.float64).reshape(len(P), -1)
     finite_conf = geometry.conf[np.isfinite(geometry.conf)]
     thr = np.quantile(finite_conf, conf_quantile) if conf_quantile > 0 and finite_conf.size else -np.inf
     with np.errstate(invalid="ignore"):
-        keep = (np.isfinite(depth) & (depth > 0) & (depth <= max_depth) & (conf >= thr)).reshape(f, -1)
-    return P[keep].astype(np.float32), conf.reshape(f, -1)[keep].astype(np.float32)
+        keep = np.isfinite(d) & (d > 0) & (d <= max_depth) & (conf >= thr)
+    return P[keep].astype(np.float32), conf[keep].astype(np.float32)
 
 
 @dataclass

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from vi3_core import so3_torch
+from vi3_core.camera_torch import pixel_rays
 
 
 def loss_pos(t: torch.Tensor, t_imu: torch.Tensor) -> torch.Tensor:
@@ -33,14 +34,6 @@ def loss_anchor_depth(depth_raw: torch.Tensor, depth_raw0: torch.Tensor, valid: 
     """L_a^D: mean |D_i - D_i^(0)| of the raw (un-alpha-scaled) depth against the zero-shot depth, over valid
     pixels (a per-pixel mean rather than the map's L1 sum, so the paper's weight w_ad = 1 is resolution-free)."""
     return (depth_raw - depth_raw0).abs()[valid].mean()
-
-
-def pixel_rays(K: torch.Tensor, h: int, w: int, stride: int = 1) -> torch.Tensor:
-    """K^-1 [u, v, 1] at pixel centres (every ``stride`` pixels): [n, h'*w', 3]."""
-    v, u = torch.meshgrid(torch.arange(0, h, stride, dtype=K.dtype, device=K.device),
-                          torch.arange(0, w, stride, dtype=K.dtype, device=K.device), indexing="ij")
-    pix = torch.stack([u, v, torch.ones_like(u)], -1).reshape(-1, 3)
-    return pix @ torch.linalg.inv(K).transpose(-1, -2)
 
 
 def loss_dcons(R: torch.Tensor, t: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, *,

@@ -17,6 +17,7 @@ from matplotlib.collections import PathCollection
 from matplotlib.figure import Figure
 
 from vi3_core import so3
+from vi3_core.camera import backproject as backproject_depth
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.types import Geometry
 
@@ -41,17 +42,10 @@ def ground_basis(down: np.ndarray) -> np.ndarray:
 def backproject(geometry: Geometry, *, step: int = 8, max_points: int = 20000, seed: int = 0) -> np.ndarray:
     """World points [N,3] (first camera frame) of every ``step``-th pixel with valid depth, at most
     ``max_points`` (a deterministic random subset)."""
-    depth = geometry.depth[:, ::step, ::step].astype(np.float64)
-    n, h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64) * step
-    pix = np.stack([u, v, np.ones_like(u)], axis=-1).reshape(-1, 3)
-    rays = np.einsum("nij,pj->npi", np.linalg.inv(geometry.K), pix)  # K^-1 [u v 1]
-    pts_c = rays * depth.reshape(n, -1, 1)
-    T = so3.relative_to_first(geometry.T_wc)
-    pts = np.einsum("nij,npj->npi", T[:, :3, :3], pts_c) + T[:, None, :3, 3]
-    pts = pts.reshape(-1, 3)
+    pts, depth = backproject_depth(geometry.depth, geometry.K, so3.relative_to_first(geometry.T_wc), stride=step)
+    pts, depth = pts.reshape(-1, 3), depth.reshape(-1)
     with np.errstate(invalid="ignore"):
-        pts = pts[np.isfinite(pts).all(axis=1) & (depth.reshape(-1) > 0)]
+        pts = pts[np.isfinite(pts).all(axis=1) & (depth > 0)]
     if len(pts) > max_points:
         pts = pts[np.sort(np.random.default_rng(seed).choice(len(pts), max_points, replace=False))]
     return pts

@@ -32,9 +32,10 @@ import torch
 
 from vi3_core import so3_torch
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
-from vi3_core.backbones.classical.mvs import pixel_rays, plane_sweep
+from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses
 from vi3_core.backbones.classical.tracks import track_features
+from vi3_core.camera_torch import pixel_rays
 from vi3_core.errors import CalibrationError, DataError, ModeNotSupported
 
 
@@ -163,7 +164,8 @@ class ClassicalBackbone(Backbone):
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
-            pts = torch.einsum("nij,jhw->nihw", R, pixel_rays(K_t, h, w)) * depth[:, None] + t[:, :, None, None]
+            rays = pixel_rays(K_t, h, w).T.reshape(3, h, w)
+            pts = torch.einsum("nij,jhw->nihw", R, rays) * depth[:, None] + t[:, :, None, None]
             if float(conf.sum()) > 1e-6:
                 s = float((conf * pts.norm(dim=1)).sum() / conf.sum())
             else:

@@ -15,6 +15,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from vi3_core.camera_torch import pixel_rays
+
 
 def _box(x: torch.Tensor, window: int) -> torch.Tensor:
     """Mean over a ``window`` x ``window`` box (odd) of x [B,1,h,w], edges replicated. Summed-area tables:
@@ -36,14 +38,6 @@ def select_sources(n: int, *, n_sources: int) -> np.ndarray:
     return np.argsort(gap, axis=1, kind="stable")[:, :min(n_sources, n - 1)]
 
 
-def pixel_rays(K: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """[3,h,w] rays K^-1 [u, v, 1] of every pixel (z = 1, so a point at z-depth d is d * ray)."""
-    v, u = torch.meshgrid(torch.arange(h, dtype=K.dtype, device=K.device),
-                          torch.arange(w, dtype=K.dtype, device=K.device), indexing="ij")
-    pix = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)
-    return (torch.linalg.inv(K) @ pix).reshape(3, h, w)
-
-
 def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: torch.Tensor,
                 depth_range: torch.Tensor, *, n_depths: int = 24, n_sources: int = 2, best_k: int = 2,
                 window: int = 7, temperature: float = 0.05, min_var: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
@@ -56,7 +50,7 @@ def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: t
     n, _, h, w = gray.shape
     dt, dev = gray.dtype, gray.device
     sources = torch.as_tensor(select_sources(n, n_sources=n_sources), device=dev)
-    rays = pixel_rays(K, h, w).reshape(3, h * w)
+    rays = pixel_rays(K, h, w).T  # [3,hw]
     steps = torch.linspace(0.0, 1.0, n_depths, dtype=dt, device=dev)
     # Each image normalised to zero mean, unit variance over its own windows before warping, so that the
     # normalised correlation of the warped source needs two box filters per plane instead of five.
