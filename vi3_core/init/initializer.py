@@ -17,7 +17,7 @@ from vi3_core import so3
 from vi3_core.init import gravity_seeds, validate
 from vi3_core.init.gyro_bias import body_rotations, gyro_bias_eq, refine_gyro_bias
 from vi3_core.init.options import InitOptions
-from vi3_core.init.velocity_gravity import FixedPoint, ScaleGravitySystem
+from vi3_core.init.velocity_gravity import ScaleGravitySystem
 from vi3_core.preintegration import interval_gyro_mean, merged_grid, preintegrate
 from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus
 
@@ -151,4 +151,4 @@ def initialise_clip(clip, geometry: Geometry, *, options: InitOptions | None = N
                       imu_history=clip.imu_history)
 
 
-__all__ = ["FixedPoint", "initialise", "initialise_clip", "select_gravity"]
+__all__ = ["initialise", "initialise_clip", "select_gravity"]

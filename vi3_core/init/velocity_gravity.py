@@ -58,10 +58,12 @@ class ScaleGravitySystem:
         self.dc = np.diff(self.c)
         self.W_body = np.diff(self.dbar, axis=0)
         self.W = self.W_body - np.diff(self.bbar, axis=0)
+        # The reductions are kept as Python floats and 3-tuples: the fixed point evaluates S and g_ls tens of
+        # times per clip, where numpy's per-call overhead would dominate these 3-vector operations.
         self._A = float(self.dc @ self.dc)
-        self._u = self.dc @ self.W
+        self._u = tuple(map(float, self.dc @ self.W))
         self._w2 = float((self.W * self.W).sum())
-        self._q = self.dc @ self.VM
+        self._q = tuple(map(float, self.dc @ self.VM))
         self._r = float((self.W * self.VM).sum())
         self._m2 = float((self.VM * self.VM).sum())
         # Eq. gls over all interval pairs: n(s) = s P_hat + Q_hat.
@@ -69,23 +71,23 @@ class ScaleGravitySystem:
         dt = (self.c[j] - self.c[i])[:, None]
         Q = (self.bbar[j] - self.bbar[i]) - (self.dbar[j] - self.dbar[i])
         denom = float((dt**2).sum())
-        self._P_hat = (dt * (self.abar[j] - self.abar[i])).sum(0) / denom
-        self._Q_hat = (dt * Q).sum(0) / denom
+        self._P_hat = tuple(map(float, (dt * (self.abar[j] - self.abar[i])).sum(0) / denom))
+        self._Q_hat = tuple(map(float, (dt * Q).sum(0) / denom))
 
     @property
     def visual_signal(self) -> float:
         """|V^M|: norm of the backbone's velocity increments (model units / s)."""
         return math.sqrt(self._m2)
 
-    def inner(self, g: np.ndarray) -> float:
-        """<V(g), V^M>."""
-        return float(g @ self._q) + self._r
+    def inner(self, g) -> float:
+        """<V(g), V^M> for a gravity g (any 3-sequence)."""
+        return _dot(g, self._q) + self._r
 
-    def inertial_norm(self, g: np.ndarray) -> float:
+    def inertial_norm(self, g) -> float:
         """|V(g)| in m/s."""
-        return math.sqrt(max(float(g @ g) * self._A + 2.0 * float(g @ self._u) + self._w2, 0.0))
+        return math.sqrt(max(_dot(g, g) * self._A + 2.0 * _dot(g, self._u) + self._w2, 0.0))
 
-    def scale(self, g: np.ndarray, solver: str = "tls") -> float:
+    def scale(self, g, solver: str = "tls") -> float:
         """S(g). TLS (Eq. S): sign(<V, V^M>) |V| / |V^M|; OLS: <V, V^M> / |V^M|^2 (ablation)."""
         if self._m2 <= 0.0:
             return float("nan")
@@ -104,10 +106,15 @@ class ScaleGravitySystem:
         V = g * self.dc[:, None] + self.W_body
         return float(np.sqrt(((V / self.dc[:, None]) ** 2).sum(1).mean()))
 
+    def _g_ls(self, s: float) -> tuple[float, float, float]:
+        P, Q = self._P_hat, self._Q_hat
+        n = (s * P[0] + Q[0], s * P[1] + Q[1], s * P[2] + Q[2])
+        k = self.gravity_norm / math.sqrt(_dot(n, n))
+        return (n[0] * k, n[1] * k, n[2] * k)
+
     def gravity_ls(self, s: float) -> np.ndarray:
         """g_ls(s), Eq. gls: |g| fixed to the gravity norm, direction of sum dt_ij r_ij / sum dt_ij^2."""
-        n = s * self._P_hat + self._Q_hat
-        return self.gravity_norm * n / np.linalg.norm(n)
+        return np.array(self._g_ls(s))
 
     def fixed_point(self, g_seed: np.ndarray, *, solver: str, tol_deg: float, max_iters: int,
                     accelerate: bool = True) -> FixedPoint:
@@ -118,34 +125,22 @@ class ScaleGravitySystem:
         S(g_ls(s)). It contracts slowly when the clip's acceleration is weak (factors of 0.65 to 0.999 were seen
         on EuRoC-like motion), so ``accelerate`` applies Steffensen's method to the same F: same fixed point,
         quadratic convergence. An anti-aligned S (negative) falls back to s = 1 as in the paper and is reported.
-        The loop runs on Python floats: numpy's per-call overhead would dominate these 3-vector operations.
         """
         G = self.gravity_norm
         if self._m2 <= 0.0:  # the backbone predicts no change of velocity: S is undefined
             g0 = G * np.asarray(g_seed, dtype=np.float64) / np.linalg.norm(g_seed)
             return FixedPoint(g0, float("nan"), 0, False, False)
-        P, Q, q, u = (tuple(map(float, v)) for v in (self._P_hat, self._Q_hat, self._q, self._u))
-        A, w2, r, m2 = self._A, self._w2, self._r, self._m2
         anti = False
 
         def S(g: tuple) -> float:
             nonlocal anti
-            inner = g[0] * q[0] + g[1] * q[1] + g[2] * q[2] + r
-            if solver == "ols":
-                val = inner / m2
-            else:
-                num2 = G * G * A + 2.0 * (g[0] * u[0] + g[1] * u[1] + g[2] * u[2]) + w2
-                val = math.copysign(math.sqrt(max(num2, 0.0) / m2), inner)
+            val = self.scale(g, solver)
             if not val > 0.0:
                 anti = True
                 return 1.0
             return val
 
-        def g_ls(s: float) -> tuple:
-            n = (s * P[0] + Q[0], s * P[1] + Q[1], s * P[2] + Q[2])
-            k = G / math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-            return (n[0] * k, n[1] * k, n[2] * k)
-
+        g_ls = self._g_ls
         norm0 = math.sqrt(sum(float(x) ** 2 for x in g_seed))
         s = S(tuple(G * float(x) / norm0 for x in g_seed))
         g = g_ls(s)
@@ -191,3 +186,7 @@ class ScaleGravitySystem:
         if mu <= 0.0:
             return first, "first_pair (median projection <= 0)"
         return mu * direction, "all_pairs"
+
+
+def _dot(a, b) -> float:
+    return float(a[0]) * b[0] + float(a[1]) * b[1] + float(a[2]) * b[2]
