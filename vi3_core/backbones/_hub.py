@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from vi3_core import so3
 from vi3_core.backbones.base import CAP_COND_INTRINSICS, CAP_COND_POSE, Backbone, BackboneInputs, Condition
 from vi3_core.errors import BackboneUnavailable, ModeNotSupported
 
@@ -171,8 +172,7 @@ def condition_to_tensor(T_wc: np.ndarray, *, n: int, device: torch.device) -> to
     T = np.asarray(T_wc, dtype=np.float64)
     if T.shape != (n, 4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"condition T_wc must be finite [{n},4,4], got {T.shape}")
-    T = np.linalg.inv(T[0]) @ T
-    return torch.as_tensor(T, dtype=torch.float32, device=device)
+    return torch.as_tensor(so3.relative_to_first(T), dtype=torch.float32, device=device)
 
 
 def fit_metric_scale(t_pred: torch.Tensor, t_cond: torch.Tensor, *, fallback: float) -> torch.Tensor:

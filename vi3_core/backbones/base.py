@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from vi3_core import so3
 from vi3_core.types import Geometry
 
 #: Capabilities a backbone may declare.
@@ -59,10 +60,7 @@ class Prediction:
 
     def geometry(self, scale: float = 1.0) -> Geometry:
         """Detached numpy ``Geometry`` with translation and depth multiplied by ``scale``."""
-        n = self.R_wc.shape[0]
-        T = np.tile(np.eye(4), (n, 1, 1))
-        T[:, :3, :3] = self.R_wc.detach().double().cpu().numpy()
-        T[:, :3, 3] = self.t_wc.detach().double().cpu().numpy() * scale
+        T = so3.make_T(self.R_wc.detach().double().cpu().numpy(), self.t_wc.detach().double().cpu().numpy() * scale)
         return Geometry(T_wc=T, K=self.K.detach().double().cpu().numpy(),
                         depth=self.depth.detach().float().cpu().numpy() * scale,
                         conf=self.conf.detach().float().cpu().numpy(), metric=self.metric)
