@@ -86,7 +86,7 @@ def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indic
         raise DataError(f"evaluate_clip: the clip at t = {clip.stamps[0]:.6f}..{clip.stamps[-1]:.6f} s has no ground "
                         "truth (the GT track does not cover it); evaluation needs GT poses and velocities")
     if options.init_source == "gt":
-        init = oracle_init(clip, backbone.predict(clip.images, clip.K))
+        init = lambda base: oracle_init(clip, base)  # scales anchor's own base prediction: one forward pass
     fast: list[AnchorResult] = []
     result = anchor(clip, backbone, mode=options.mode, options=options.anchor_options,
                     init_options=options.init_options, init=init,
