@@ -34,6 +34,7 @@ from vi3_core.dataset.asl import find_mav0
 from vi3_core.errors import DataError
 from vi3_core.types import ImuSamples
 from vi3_ros.io.reader import ImageEvent, ImuEvent, find_calib, iter_events
+from vi3_ros.io.reader import _resolve as resolve_input
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import OUTPUTS, ClipReport, Pipeline, make_pipeline
 
@@ -121,10 +122,11 @@ class ReplaySummary:
 def input_calib(path: Path) -> Path | None:
     """The calibration that comes with the input: an ASL folder's ``cam0/sensor.yaml`` or a Kalibr
     ``*camchain-imucam*.yaml`` beside a bag (``vi3 make-bag`` writes one); None if there is none."""
-    if path.is_dir() and not (path / "metadata.yaml").is_file():
-        sensor = find_mav0(path) / "cam0" / "sensor.yaml"
+    source, kind = resolve_input(path)  # the reader's own detection (a make-bag folder reads its mcap/)
+    if kind == "asl":
+        sensor = find_mav0(source) / "cam0" / "sensor.yaml"
         return sensor if sensor.is_file() else None
-    return find_calib(path)
+    return find_calib(source)
 
 
 def _calibration_events(path: Path, values: dict[str, Any]) -> list[tuple[int, str, Any]]:
