@@ -15,8 +15,8 @@ import torch
 from test_backbone_contract import check_backbone_contract
 
 from vi3_core.backbones import _hub, make_backbone
-from vi3_core.backbones.base import CAP_COND_POSE, Condition
-from vi3_core.errors import BackboneUnavailable, ModeNotSupported
+from vi3_core.backbones.base import CAP_COND_INTRINSICS, CAP_COND_POSE, Condition, ParamGroups
+from vi3_core.errors import BackboneUnavailable, CalibrationError, DataError, ModeNotSupported
 from vi3_core.so3 import exp as so3_exp
 from vi3_core.so3 import make_T
 
@@ -107,6 +107,84 @@ def test_fit_metric_scale_recovers_scale_and_falls_back_without_baseline():
     s = _hub.fit_metric_scale(t, 3.7 * t + 1e-3 * torch.randn(3, 3), fallback=9.0)
     assert abs(float(s) - 3.7) < 1e-2
     assert float(_hub.fit_metric_scale(torch.zeros(3, 3), t, fallback=0.5)) == 0.5
+
+
+def test_prediction_is_metric_only_with_condition_centres():
+    """The adapters' common ending: model units without a condition; with one, translation and depth scaled by the
+    least-squares fit onto the condition centres, or by the model's normaliser when there is no baseline."""
+    t = torch.tensor([[0.0, 0, 0], [1.0, 0.2, 0], [2.0, -0.1, 0.3]])
+    R = K = torch.eye(3).expand(3, 3, 3)
+    depth, conf = torch.ones(3, 4, 5), torch.ones(3, 4, 5)
+    up = _hub.prediction(R, t, K, depth, conf)
+    assert up.metric is False and up.t_wc is t and up.depth is depth
+    metric = _hub.prediction(R, t, K, depth, conf, cond_centres=2.5 * t, fallback=9.0)
+    assert metric.metric is True and metric.conf is conf
+    assert torch.allclose(metric.t_wc, 2.5 * t) and torch.allclose(metric.depth, 2.5 * depth)
+    static = _hub.prediction(R, torch.zeros(3, 3), K, depth, conf, cond_centres=torch.zeros(3, 3), fallback=9.0)
+    assert static.metric is True and torch.allclose(static.depth, 9.0 * depth)
+
+
+class _Stub(_hub.UpstreamBackbone):
+    """An adapter without a network: enough for preprocessing and condition checks."""
+
+    name = "stub"
+    capabilities = frozenset({CAP_COND_POSE, CAP_COND_INTRINSICS})
+
+    def target_hw(self, H: int, W: int) -> tuple[int, int]:
+        return 28, 42
+
+    def forward(self, inputs, condition=None):
+        raise NotImplementedError
+
+    def param_groups(self) -> ParamGroups:
+        return ParamGroups()
+
+
+def test_check_condition_validates_and_falls_back_to_the_calibrated_K():
+    stub = _Stub()
+    inputs = stub.preprocess(_images(), K_SRC)
+    assert stub.check_condition(None, inputs) == (None, None)
+    cond = _condition(2.0)
+    T, K = stub.check_condition(cond, inputs)
+    assert T.dtype == K.dtype == torch.float32 and T.shape == (N_FRAMES, 4, 4)
+    np.testing.assert_allclose(T.numpy(), cond.T_wc, atol=1e-6)  # frame 0 is already the identity
+    assert torch.equal(K, inputs.K)  # no condition K: the calibrated one at the model resolution
+    K_cond = np.tile(K_SRC * [[2.0], [2.0], [1.0]], (N_FRAMES, 1, 1))
+    _, K = stub.check_condition(Condition(T_wc=cond.T_wc, K=K_cond), inputs)
+    np.testing.assert_allclose(K.numpy(), K_cond, rtol=1e-6)
+    with pytest.raises(CalibrationError, match="condition K"):
+        stub.check_condition(Condition(T_wc=cond.T_wc, K=K_SRC), inputs)  # [3,3], not one per frame
+    with pytest.raises(DataError, match="condition T_wc"):
+        stub.check_condition(Condition(T_wc=cond.T_wc[:2]), inputs)
+    stub.capabilities = frozenset({CAP_COND_POSE})
+    with pytest.raises(ModeNotSupported, match="intrinsics"):
+        stub.check_condition(Condition(T_wc=cond.T_wc, K=K_cond), inputs)
+
+
+def test_preprocess_rejects_bad_images_and_intrinsics():
+    stub = _Stub()
+    with pytest.raises(DataError, match="uint8"):
+        stub.preprocess(_images().astype(np.float32), K_SRC)
+    with pytest.raises(DataError, match="n >= 1"):
+        stub.preprocess(_images()[:0], K_SRC)
+    with pytest.raises(CalibrationError, match="K must be"):
+        stub.preprocess(_images(), K_SRC * [[-1.0], [1.0], [1.0]])
+    assert stub.diagnostics() == {}  # adapters report nothing beyond the prediction
+
+
+def test_aggregate_runs_under_autocast_and_hands_float32_tokens_to_the_heads():
+    class Aggregator(torch.nn.Module):
+        def forward(self, images):
+            self.autocast = torch.is_autocast_enabled("cpu")
+            x = images.flatten(3)
+            return [x.bfloat16(), None, x], 1
+
+    agg = Aggregator()
+    tokens, start = _hub.aggregate(agg, torch.rand(1, 2, 3, 4, 4), device=torch.device("cpu"), dtype=torch.bfloat16)
+    assert agg.autocast and start == 1 and tokens[1] is None
+    assert tokens[0].dtype == tokens[2].dtype == torch.float32
+    _hub.aggregate(agg, torch.rand(1, 2, 3, 4, 4), device=torch.device("cpu"), dtype=torch.float32)
+    assert not agg.autocast
 
 
 def test_intrinsics_from_rays_recovers_pinhole_focal():

@@ -13,6 +13,7 @@ from test_backbone_contract import half_resolution
 
 from vi3_core import so3
 from vi3_core.backbones import make_backbone
+from vi3_core.backbones._hub import resize_crop
 from vi3_core.backbones.base import Condition
 from vi3_core.backbones.bench import bench_backbone
 from vi3_core.backbones.classical import ClassicalBackbone
@@ -200,6 +201,21 @@ def test_bad_input_raises_named_errors(half_clip):
     inputs = backbone.preprocess(images[:3], K)
     with pytest.raises(ModeNotSupported, match="conditioning"):
         backbone.forward(inputs, Condition(T_wc=np.tile(np.eye(4), (3, 1, 1))))
+
+
+def test_working_grid_is_the_shared_resize_crop(half_clip):
+    """preprocess resamples with ``_hub.resize_crop``: the same images and K (skew kept) at the working grid."""
+    images, K = half_clip
+    K = K.copy()
+    K[0, 1] = 0.8
+    backbone = ClassicalBackbone()
+    inputs = backbone.preprocess(images[:3], K)
+    x, K_t = resize_crop(images[:3], K, backbone.working_size(*images.shape[1:3]), device=torch.device("cpu"))
+    assert torch.equal(inputs.images, x) and torch.equal(inputs.K, K_t)
+    assert float(inputs.K[0, 0, 1]) == pytest.approx(0.8 * x.shape[-1] / images.shape[2])
+    diag = backbone.diagnostics()
+    assert diag["status"] == inputs.status and diag["reason"] == inputs.reason
+    assert {"tracks_s", "sfm_s", "mvs_s", "scale_divisor"} <= set(diag)
 
 
 def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):

@@ -1,6 +1,7 @@
-"""Shared plumbing for the 3DFM adapters: lazy upstream imports, checkpoint resolution (local path or the
-Hugging Face cache, offline-capable), weight loading, preprocessing to the patch grid, pose re-anchoring
-and metric-scale restoration after pose conditioning.
+"""Shared plumbing of the backbones: lazy upstream imports, checkpoint resolution (local path or the Hugging Face
+cache, offline-capable), weight loading, preprocessing to the working grid (also the classical backbone's),
+pose re-anchoring, mixed precision for the VGGT-family trunks, and the metric-scale restoration after pose
+conditioning.
 
 Nothing here imports an upstream model package at module import time.
 """
@@ -20,8 +21,15 @@ import torch
 import torch.nn.functional as F
 
 from vi3_core import so3
-from vi3_core.backbones.base import CAP_COND_INTRINSICS, CAP_COND_POSE, Backbone, BackboneInputs, Condition
-from vi3_core.errors import BackboneUnavailable, ModeNotSupported
+from vi3_core.backbones.base import (
+    CAP_COND_INTRINSICS,
+    CAP_COND_POSE,
+    Backbone,
+    BackboneInputs,
+    Condition,
+    Prediction,
+)
+from vi3_core.errors import BackboneUnavailable, CalibrationError, DataError, ModeNotSupported
 
 #: Weight files tried, in order, inside a checkpoint directory.
 WEIGHT_FILES = ("model.safetensors", "model.pt", "pytorch_model.bin")
@@ -127,26 +135,38 @@ def hw_long_side(H: int, W: int, *, long_side: int, patch: int) -> tuple[int, in
     return max(patch, round(H * s / patch) * patch), max(patch, round(W * s / patch) * patch)
 
 
+def check_clip(images: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The input checks of every backbone's ``preprocess``: images [n,H,W] or [n,H,W,3] uint8 with n >= 1 and a
+    finite K [3,3] (pixels) with fx, fy > 0. Returns (images, K as float64); raises ``DataError`` /
+    ``CalibrationError`` naming what is wrong."""
+    images = np.asarray(images)
+    if images.dtype != np.uint8 or images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[3] != 3) \
+            or images.shape[0] < 1:
+        raise DataError(f"images must be uint8 [n,H,W] or [n,H,W,3] with n >= 1; got {images.dtype} {images.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError(f"K must be a finite [3,3] intrinsic matrix with fx, fy > 0; got {K.tolist()}")
+    return images, K
+
+
 def resize_crop(images: np.ndarray, K: np.ndarray, hw: tuple[int, int], *,
                 device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Uniformly scale ``images`` [n,H,W(,3)] uint8 so they cover ``hw`` and centre-crop to it.
+    """Uniformly scale ``images`` [n,H,W(,3)] uint8 so they cover ``hw`` = (h, w) and centre-crop to it; ``images``
+    and ``K`` [3,3] (pixels) as returned by ``check_clip``.
 
-    Returns images [n,3,h,w] in [0,1] (grey replicated to RGB) and K [n,3,3] for the new pixel grid
-    (pixel-centre convention: u' = (u + 0.5) * s - 0.5 - crop offset)."""
-    if images.ndim not in (3, 4) or images.dtype != np.uint8:
-        raise ValueError(f"images must be uint8 [n,H,W] or [n,H,W,3], got {images.dtype} {images.shape}")
-    if K.shape != (3, 3):
-        raise ValueError(f"K must be [3,3], got {K.shape}")
+    Returns images [n,3,h,w] float32 in [0,1] on ``device`` (grey replicated to RGB; bilinear, antialiased when
+    shrinking) and K [n,3,3] float32 for the new pixel grid: the focal lengths and skew scale with the image, the
+    principal point follows the pixel-centre convention u' = (u + 0.5) * s - 0.5 - crop offset."""
     x = torch.from_numpy(np.ascontiguousarray(images)).to(device)
-    x = x[..., None].expand(*x.shape, 3) if x.ndim == 3 else x
-    x = x.permute(0, 3, 1, 2).float() / 255.0
+    x = x[:, None] if x.ndim == 3 else x.permute(0, 3, 1, 2)  # grey stays one channel until after the resize
+    x = x.float() / 255.0
     n, _, H, W = x.shape
     h, w = hw
     s = max(h / H, w / W)
     Hs, Ws = max(h, round(H * s)), max(w, round(W * s))
     x = F.interpolate(x, size=(Hs, Ws), mode="bilinear", align_corners=False, antialias=Hs < H)
     top, left = (Hs - h) // 2, (Ws - w) // 2
-    x = x[:, :, top:top + h, left:left + w].clamp(0.0, 1.0)
+    x = x[:, :, top:top + h, left:left + w].clamp(0.0, 1.0).expand(n, 3, h, w)
     sx, sy = Ws / W, Hs / H
     Kn = np.array([[K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5 - left],
                    [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5 - top],
@@ -167,14 +187,6 @@ def anchor_w2c(R_cw: torch.Tensor, t_cw: torch.Tensor) -> tuple[torch.Tensor, to
     return anchor_c2w(R_wc, -(R_wc @ t_cw[..., None])[..., 0])
 
 
-def condition_to_tensor(T_wc: np.ndarray, *, n: int, device: torch.device) -> torch.Tensor:
-    """Metric condition poses [n,4,4] (camera-to-world) as float32 re-anchored at frame 0."""
-    T = np.asarray(T_wc, dtype=np.float64)
-    if T.shape != (n, 4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"condition T_wc must be finite [{n},4,4], got {T.shape}")
-    return torch.as_tensor(so3.relative_to_first(T), dtype=torch.float32, device=device)
-
-
 def fit_metric_scale(t_pred: torch.Tensor, t_cond: torch.Tensor, *, fallback: float) -> torch.Tensor:
     """Scale (detached scalar) mapping predicted camera centres [n,3] (model units, frame 0 at the origin)
     onto the metric conditioning centres [n,3]: argmin_s sum ||s t_pred - t_cond||^2. With no baseline
@@ -186,11 +198,40 @@ def fit_metric_scale(t_pred: torch.Tensor, t_cond: torch.Tensor, *, fallback: fl
     return num / den
 
 
+def prediction(R_wc: torch.Tensor, t_wc: torch.Tensor, K: torch.Tensor, depth: torch.Tensor, conf: torch.Tensor, *,
+               cond_centres: torch.Tensor | None = None, fallback: float = 1.0) -> Prediction:
+    """An adapter's ``Prediction`` from frame-0-anchored poses R_wc [n,3,3], t_wc [n,3], K [n,3,3] (pixels),
+    z-depth and confidence [n,h,w].
+
+    Without ``cond_centres`` it is up to scale (``metric=False``). With the metric condition camera centres
+    cond_centres [n,3] (metres, frame 0 at the origin), translations and depth are multiplied by
+    ``fit_metric_scale(t_wc, cond_centres, fallback=fallback)`` and the prediction is in metres (``metric=True``);
+    ``fallback`` is the factor by which the model normalised the condition translations."""
+    if cond_centres is None:
+        return Prediction(R_wc=R_wc, t_wc=t_wc, K=K, depth=depth, conf=conf, metric=False)
+    s = fit_metric_scale(t_wc, cond_centres, fallback=fallback)
+    return Prediction(R_wc=R_wc, t_wc=t_wc * s, K=K, depth=depth * s, conf=conf, metric=True)
+
+
 def autocast(device: torch.device, dtype: torch.dtype) -> contextlib.AbstractContextManager:
     """Mixed precision for the transformer trunk when ``dtype`` is not float32 (heads stay float32)."""
     if dtype == torch.float32:
         return contextlib.nullcontext()
     return torch.autocast(device_type=device.type, dtype=dtype)
+
+
+def aggregate(aggregator: torch.nn.Module, images: torch.Tensor, *, device: torch.device,
+              dtype: torch.dtype) -> tuple[list[torch.Tensor | None], int]:
+    """Run a VGGT or VGGT-Omega aggregator on images [1,n,3,h,w] in [0,1] under ``autocast(device, dtype)``.
+
+    Returns its per-layer tokens [1,n,T,2C] as float32 (None for the layers VGGT-Omega does not cache) and the
+    index of the first patch token. The caller runs the heads outside autocast on these float32 tokens, as
+    upstream's ``VGGT.forward`` / ``VGGTOmega.forward`` run them with autocast disabled: VGGT-Omega's heads cast
+    their inputs to float32 themselves, VGGT's do not (its DPT head fails on bfloat16 tokens), so the cast here
+    gives both the inputs their weights expect whatever precision autocast leaves the tokens in."""
+    with autocast(device, dtype):
+        tokens, patch_start = aggregator(images)
+    return [None if t is None else t.float() for t in tokens], patch_start
 
 
 def freeze(module: torch.nn.Module) -> None:
@@ -237,21 +278,35 @@ class UpstreamBackbone(Backbone):
         """Model input size (h, w), multiples of ``patch_size``, for an H x W source image."""
 
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> BackboneInputs:
-        if images.ndim < 3 or images.shape[0] < 1:
-            raise ValueError(f"images must be [n,H,W(,3)] with n >= 1, got {images.shape}")
+        images, K = check_clip(images, K)
         H, W = images.shape[1:3]
-        x, Kt = resize_crop(images, np.asarray(K, dtype=np.float64), self.target_hw(H, W), device=self.device)
+        x, Kt = resize_crop(images, K, self.target_hw(H, W), device=self.device)
         return BackboneInputs(images=x, K=Kt, src_hw=(H, W))
 
     def modules(self) -> list[torch.nn.Module]:
         return [self.net]
 
-    def check_condition(self, condition: Condition | None, n: int) -> torch.Tensor | None:
-        """Validate ``condition`` against the capabilities; its T_wc re-anchored at frame 0 as float32."""
+    def check_condition(self, condition: Condition | None,
+                        inputs: BackboneInputs) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """Validate ``condition`` against the capabilities and the n frames of ``inputs``.
+
+        Returns (None, None) without a condition, else float32 tensors on ``device``: T_wc [n,4,4] camera-to-world
+        re-anchored at frame 0 (metres) and K [n,3,3] (pixels, model resolution): ``condition.K`` where given,
+        else the calibrated ``inputs.K`` (Pi3X needs rays and DA3 intrinsics whenever they get poses)."""
         if condition is None:
-            return None
+            return None, None
         if CAP_COND_POSE not in self.capabilities:
             raise ModeNotSupported(f"backbone {self.name!r} does not accept pose conditioning")
         if condition.K is not None and CAP_COND_INTRINSICS not in self.capabilities:
             raise ModeNotSupported(f"backbone {self.name!r} does not accept intrinsics conditioning")
-        return condition_to_tensor(condition.T_wc, n=n, device=self.device)
+        n = inputs.images.shape[0]
+        T = np.asarray(condition.T_wc, dtype=np.float64)
+        if T.shape != (n, 4, 4) or not np.all(np.isfinite(T)):
+            raise DataError(f"condition T_wc must be finite [{n},4,4], got {T.shape}")
+        T_wc = torch.as_tensor(so3.relative_to_first(T), dtype=torch.float32, device=self.device)
+        if condition.K is None:
+            return T_wc, inputs.K.to(device=self.device, dtype=torch.float32)
+        K = np.asarray(condition.K, dtype=np.float64)
+        if K.shape != (n, 3, 3) or not np.all(np.isfinite(K)):
+            raise CalibrationError(f"condition K must be finite [{n},3,3], got {K.shape}")
+        return T_wc, torch.as_tensor(K, dtype=torch.float32, device=self.device)

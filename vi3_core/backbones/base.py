@@ -90,8 +90,8 @@ class Backbone(abc.ABC):
     """A 3DFM (or the classical embedded pipeline) behind one interface.
 
     Subclasses set ``name``, ``metric``, ``capabilities``, ``patch_size`` and implement ``preprocess``,
-    ``forward``, ``param_groups`` and ``modules``. ``forward`` must be differentiable with respect to
-    the parameters returned by ``param_groups`` when gradients are enabled.
+    ``forward``, ``param_groups`` and ``modules`` (and ``diagnostics`` where they report on the clip). ``forward``
+    must be differentiable with respect to the parameters returned by ``param_groups`` when gradients are enabled.
     """
 
     name: str = "abstract"
@@ -121,6 +121,12 @@ class Backbone(abc.ABC):
     def modules(self) -> list[torch.nn.Module]:
         """The torch modules holding all parameters (put in eval mode; frozen except TTR groups)."""
         return []
+
+    def diagnostics(self) -> dict:
+        """What the backbone reports about the last clip it preprocessed, as JSON-serialisable name -> value: keys
+        ending in ``_s`` are stage timings in seconds; ``status`` and ``reason`` give the clip's outcome where the
+        backbone has one. Empty by default (an adapter has nothing to report beyond its ``Prediction``)."""
+        return {}
 
     def set_gradient_checkpointing(self, enabled: bool) -> None:
         """Trade recompute for memory in the trainable blocks (adapters override where upstream allows)."""

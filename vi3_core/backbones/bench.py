@@ -19,7 +19,8 @@ def bench_backbone(args) -> dict:
 
     Keys: median_s, min_s, cpu_median_s (process CPU time, less sensitive to other load on the machine),
     frames, resolution (input [H, W]), working_resolution ([h, w] of depth), backbone, device, repeats, and for
-    backbones that report them the per-stage seconds of the last run and the clip status.
+    backbones that report them (``Backbone.diagnostics``) stages_s, the per-stage seconds of the last run, and
+    status, the clip's outcome.
     """
     repeats = args.repeats or 5
     seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
@@ -35,8 +36,10 @@ def bench_backbone(args) -> dict:
            "frames": int(clip.n), "resolution": [int(s) for s in clip.images.shape[1:3]],
            "working_resolution": [int(s) for s in geometry.depth.shape[1:]], "backbone": args.backbone,
            "device": str(args.device), "repeats": repeats}
-    last = getattr(backbone, "last_inputs", None)
-    if last is not None and hasattr(last, "diagnostics"):
-        out["stages_s"] = {k: round(float(v), 4) for k, v in last.diagnostics.items() if k.endswith("_s")}
-        out["status"] = last.status
+    diagnostics = backbone.diagnostics()
+    stages = {k: round(float(v), 4) for k, v in diagnostics.items() if k.endswith("_s")}
+    if stages:
+        out["stages_s"] = stages
+    if "status" in diagnostics:
+        out["status"] = diagnostics["status"]
     return out

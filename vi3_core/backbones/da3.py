@@ -81,28 +81,23 @@ class DA3Backbone(_hub.UpstreamBackbone):
         return _hub.hw_long_side(H, W, long_side=self.resolution, patch=self.patch_size)
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
-        n = inputs.images.shape[0]
-        T_cond = self.check_condition(condition, n)
+        T_cond, K_cond = self.check_condition(condition, inputs)
         x = (inputs.images[None] - self._mean) / self._std
         extrinsics = intrinsics = None
-        if T_cond is not None:
+        s_norm = 1.0
+        if T_cond is not None:  # the wrapper's input normalisation (module docstring)
             centres = T_cond[:, :3, 3]
             s_norm = max(float(centres.norm(dim=-1).median()), MIN_POSE_SCALE)
-            T_norm = torch.cat([T_cond[:, :3, :3], centres[..., None] / s_norm], dim=-1)
-            extrinsics = _w2c(T_norm)[None]
-            intrinsics = (inputs.K if condition.K is None
-                          else torch.as_tensor(condition.K, dtype=torch.float32, device=self.device))[None]
+            extrinsics = _w2c(torch.cat([T_cond[:, :3, :3], centres[..., None] / s_norm], dim=-1))[None]
+            intrinsics = K_cond[None]
         with _hub.autocast(self.device, self.dtype):
             out = self.net(x, extrinsics=extrinsics, intrinsics=intrinsics, export_feat_layers=[],
                            ref_view_strategy="first")
         E = out["extrinsics"][0].float()
         R_wc, t_wc = _hub.anchor_w2c(E[:, :3, :3], E[:, :3, 3])
-        depth, conf = out["depth"][0].float(), out["depth_conf"][0].float()
-        K = out["intrinsics"][0].float()
-        if T_cond is None:
-            return Prediction(R_wc=R_wc, t_wc=t_wc, K=K, depth=depth, conf=conf, metric=False)
-        s = _hub.fit_metric_scale(t_wc, T_cond[:, :3, 3], fallback=s_norm)
-        return Prediction(R_wc=R_wc, t_wc=t_wc * s, K=K, depth=depth * s, conf=conf, metric=True)
+        return _hub.prediction(R_wc, t_wc, out["intrinsics"][0].float(), out["depth"][0].float(),
+                               out["depth_conf"][0].float(), cond_centres=None if T_cond is None else T_cond[:, :3, 3],
+                               fallback=s_norm)
 
     def param_groups(self) -> ParamGroups:
         vit = self.net.backbone.pretrained

@@ -62,7 +62,7 @@ class Pi3Backbone(_hub.UpstreamBackbone):
         return _hub.hw_pixel_budget(H, W, pixels=self.resolution, patch=self.patch_size, strict=True)
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
-        self.check_condition(condition, inputs.images.shape[0])
+        self.check_condition(condition, inputs)
         with _hub.autocast(self.device, self.dtype):
             out = self.net(inputs.images[None])
         return _prediction(out["local_points"][0].float(), out["conf"][0, ..., 0].float(),
@@ -83,14 +83,10 @@ class Pi3XBackbone(Pi3Backbone):
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
         n, _, H, W = inputs.images.shape
-        T_cond = self.check_condition(condition, n)
+        T_cond, K = self.check_condition(condition, inputs)  # upstream requires rays whenever it gets poses
         net, ps = self.net, self.net.patch_start_idx
         imgs = ((inputs.images - net.image_mean) / net.image_std)[None]
         on = torch.ones(1, n, dtype=torch.bool, device=self.device)
-        K = None
-        if T_cond is not None:  # upstream requires rays with poses: the calibrated K unless one is given
-            K = inputs.K if condition.K is None else torch.as_tensor(condition.K, dtype=torch.float32,
-                                                                      device=self.device)
         with _hub.autocast(self.device, self.dtype):
             hidden, poses, _, pose_mask, _ = net.encode(
                 imgs, with_prior=T_cond is not None, intrinsics=None if K is None else K[None],
@@ -111,13 +107,15 @@ class Pi3XBackbone(Pi3Backbone):
 def _prediction(local_points: torch.Tensor, conf_logit: torch.Tensor, T_wc: torch.Tensor,
                 cond_centres: torch.Tensor | None) -> Prediction:
     """local_points [n,h,w,3] camera frame, conf_logit [n,h,w], T_wc [n,4,4] unanchored camera-to-world.
-    ``cond_centres``: metric condition camera centres [n,3] (frame 0 at the origin) to restore metres."""
+    ``cond_centres``: metric condition camera centres [n,3] (frame 0 at the origin) to restore metres; the
+    fallback scale is Pi3X's own translation normaliser (see the module docstring)."""
     R_wc, t_wc = _hub.anchor_c2w(T_wc[:, :3, :3], T_wc[:, :3, 3])
     depth = local_points[..., 2]
     K = _hub.intrinsics_from_rays(local_points[..., :2] / depth[..., None])
-    if cond_centres is None:
-        return Prediction(R_wc=R_wc, t_wc=t_wc, K=K, depth=depth, conf=torch.sigmoid(conf_logit), metric=False)
-    norms = cond_centres[1:].norm(dim=-1)
-    static = norms.numel() == 0 or float(norms.max()) < PI3X_STATIC_TRANSLATION
-    s = _hub.fit_metric_scale(t_wc, cond_centres, fallback=1.0 if static else float(norms.mean()))
-    return Prediction(R_wc=R_wc, t_wc=t_wc * s, K=K, depth=depth * s, conf=torch.sigmoid(conf_logit), metric=True)
+    fallback = 1.0
+    if cond_centres is not None:
+        norms = cond_centres[1:].norm(dim=-1)
+        if norms.numel() and float(norms.max()) >= PI3X_STATIC_TRANSLATION:
+            fallback = float(norms.mean())
+    return _hub.prediction(R_wc, t_wc, K, depth, torch.sigmoid(conf_logit), cond_centres=cond_centres,
+                           fallback=fallback)

@@ -44,17 +44,14 @@ class VGGTBackbone(_hub.UpstreamBackbone):
         return _hub.hw_fixed_width(H, W, width=self.resolution, patch=self.patch_size)
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
-        self.check_condition(condition, inputs.images.shape[0])
+        self.check_condition(condition, inputs)
         images = inputs.images[None]
-        h, w = images.shape[-2:]
-        with _hub.autocast(self.device, self.dtype):
-            tokens, patch_start = self.net.aggregator(images)
-        tokens = [t.float() for t in tokens]  # the heads run in float32 and do not cast themselves
+        tokens, patch_start = _hub.aggregate(self.net.aggregator, images, device=self.device, dtype=self.dtype)
         pose_enc = self.net.camera_head(tokens)[-1]  # last refinement iteration
         depth, conf = self.net.depth_head(tokens, images=images, patch_start_idx=patch_start)
-        extrinsics, K = self._pose_enc.pose_encoding_to_extri_intri(pose_enc, (h, w))
+        extrinsics, K = self._pose_enc.pose_encoding_to_extri_intri(pose_enc, images.shape[-2:])
         R_wc, t_wc = _hub.anchor_w2c(extrinsics[0, :, :3, :3], extrinsics[0, :, :3, 3])
-        return Prediction(R_wc=R_wc, t_wc=t_wc, K=K[0], depth=depth[0, ..., 0], conf=conf[0], metric=False)
+        return _hub.prediction(R_wc, t_wc, K[0], depth[0, ..., 0], conf[0])
 
     def param_groups(self) -> ParamGroups:
         # The camera head refines its pose iteratively and detaches each iteration's input, so its learned

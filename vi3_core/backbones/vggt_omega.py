@@ -53,16 +53,14 @@ class VGGTOmegaBackbone(_hub.UpstreamBackbone):
         return _hub.hw_pixel_budget(H, W, pixels=self.resolution ** 2, patch=self.patch_size, strict=False)
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
-        self.check_condition(condition, inputs.images.shape[0])
+        self.check_condition(condition, inputs)
         images = inputs.images[None]
-        h, w = images.shape[-2:]
-        with _hub.autocast(self.device, self.dtype):
-            tokens, patch_start = self.net.aggregator(images)
+        tokens, patch_start = _hub.aggregate(self.net.aggregator, images, device=self.device, dtype=self.dtype)
         pose_enc = self.net.camera_head(tokens, patch_token_start=patch_start)
         depth, conf = self.net.dense_head(tokens, images=images, patch_token_start=patch_start)
-        extrinsics, K = self._pose_enc.encoding_to_camera(pose_enc, (h, w))
+        extrinsics, K = self._pose_enc.encoding_to_camera(pose_enc, images.shape[-2:])
         R_wc, t_wc = _hub.anchor_w2c(extrinsics[0, :, :3, :3], extrinsics[0, :, :3, 3])
-        return Prediction(R_wc=R_wc, t_wc=t_wc, K=K[0], depth=depth[0, ..., 0], conf=conf[0], metric=False)
+        return _hub.prediction(R_wc, t_wc, K[0], depth[0, ..., 0], conf[0])
 
     def param_groups(self) -> ParamGroups:
         # The dense head's confidence projection shapes neither depth nor poses: it stays frozen.

@@ -18,7 +18,7 @@ the inputs carry ``status`` (``ok`` | ``few_features`` | ``stationary`` | ``no_p
 the confidence is zero everywhere, depth is a constant 1, translations are zero and rotations are those of a
 pure-rotation fit of the tracks where one was made (``no_parallax``, a failed registration), else the identity.
 The last clip's inputs, status and reason are also on the backbone (``last_inputs``, ``last_status``,
-``last_reason``) for callers of ``predict``.
+``last_reason``, and with the SfM counts and stage timings ``diagnostics()``) for callers of ``predict``.
 """
 
 from __future__ import annotations
@@ -31,12 +31,13 @@ import numpy as np
 import torch
 
 from vi3_core import so3_torch
+from vi3_core.backbones._hub import check_clip, resize_crop
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
-from vi3_core.backbones.classical.poses import SfmResult, estimate_poses
+from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
 from vi3_core.backbones.classical.tracks import track_features
 from vi3_core.camera_torch import pixel_rays
-from vi3_core.errors import CalibrationError, DataError, ModeNotSupported
+from vi3_core.errors import DataError, ModeNotSupported
 
 
 class Corrections(torch.nn.Module):
@@ -71,13 +72,13 @@ class ClassicalInputs(BackboneInputs):
     diagnostics: dict = field(default_factory=dict)
 
 
-def _depth_range(sfm: SfmResult, visible: np.ndarray, *, margin: float) -> tuple[float, float]:
+def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: float) -> tuple[float, float]:
     """(near, far) of the plane sweep: the 1st and 99th percentiles of the z-depths of the sparse points in the
-    views that see them, widened by ``margin``. One range for the whole clip, and a wide one, because a surface
-    with few tracks (a box that just came into view) must still fall inside it; sampling in inverse depth
-    keeps a wide range affordable."""
-    Xc = np.einsum("nji,mnj->mni", sfm.R_wc, sfm.points[:, None, :] - sfm.t_wc[None])
-    z = Xc[..., 2][visible & np.isfinite(sfm.points[:, :1]) & (Xc[..., 2] > 0)]
+    views that see them (``visible`` [m,n]; ``K`` [3,3] of the tracked images), widened by ``margin``. One range
+    for the whole clip, and a wide one, because a surface with few tracks (a box that just came into view) must
+    still fall inside it; sampling in inverse depth keeps a wide range affordable."""
+    _, z = project(sfm.points, sfm.R_wc, sfm.t_wc, K)
+    z = z[visible & np.isfinite(z) & (z > 0)]
     return float(np.percentile(z, 1)) / margin, float(np.percentile(z, 99)) * margin
 
 
@@ -121,26 +122,27 @@ class ClassicalBackbone(Backbone):
         """Reason of the last preprocessed clip's status ('' before any)."""
         return "" if self.last_inputs is None else self.last_inputs.reason
 
+    def diagnostics(self) -> dict:
+        """The last clip's status and reason, its SfM counts and errors (tracks, points, reproj_px_median, ...),
+        the scale divisor and the stage timings tracks_s, sfm_s, mvs_s (s); empty before any clip."""
+        if self.last_inputs is None:
+            return {}
+        return {"status": self.last_inputs.status, "reason": self.last_inputs.reason, **self.last_inputs.diagnostics}
+
     def working_size(self, H: int, W: int) -> tuple[int, int]:
-        """(h, w) of the working resolution for (H, W) input images."""
+        """(h, w) of the working resolution for (H, W) input images: each side divided by ``downscale`` and rounded
+        (at least 8); ``preprocess`` scales the images uniformly to cover it and centre-crops the rounding excess."""
         return max(int(round(H / self.downscale)), 8), max(int(round(W / self.downscale)), 8)
 
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
-        """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``."""
-        images = np.asarray(images)
-        if images.dtype != np.uint8 or images.ndim not in (3, 4) or (images.ndim == 4 and images.shape[3] != 3):
-            raise DataError(f"images must be uint8 [n,H,W] or [n,H,W,3]; got {images.dtype} {images.shape}")
-        K = np.asarray(K, dtype=np.float64)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise CalibrationError(f"K must be a finite [3,3] intrinsic matrix with fx, fy > 0; got {K.tolist()}")
+        """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``:
+        images [n,3,h,w] and K [n,3,3] at the working resolution (``_hub.resize_crop``)."""
+        images, K = check_clip(images, K)
         n, H, W = images.shape[:3]
-        gray = images if images.ndim == 3 else np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images])
-        rgb = np.repeat(images[..., None], 3, axis=-1) if images.ndim == 3 else images
         h, w = self.working_size(H, W)
-        small = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in rgb])
-        sx, sy = w / W, h / H
-        K_s = np.array([[K[0, 0] * sx, 0.0, (K[0, 2] + 0.5) * sx - 0.5],
-                        [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
+        dev, f32 = self.device, torch.float32
+        img, K_t = resize_crop(images, K, (h, w), device=dev)
+        gray = images if images.ndim == 3 else np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images])
 
         timings = {}
         t0 = time.perf_counter()
@@ -150,22 +152,20 @@ class ClassicalBackbone(Backbone):
         sfm = estimate_poses(tracks, K, bundle_adjust=self.bundle_adjust)
         timings["sfm_s"] = time.perf_counter() - t0
 
-        dev, f32 = self.device, torch.float32
         R = torch.as_tensor(sfm.R_wc, dtype=f32, device=dev)
         t = torch.as_tensor(sfm.t_wc, dtype=f32, device=dev)
-        img = torch.as_tensor(small, device=dev).permute(0, 3, 1, 2).to(f32) / 255.0
-        K_t = torch.as_tensor(K_s, dtype=f32, device=dev)
         if sfm.ok:
             t0 = time.perf_counter()
-            near, far = _depth_range(sfm, tracks.visible, margin=2.0)
+            near, far = _depth_range(sfm, tracks.visible, K, margin=2.0)
             rng = torch.tensor([[near, far]], dtype=f32, device=dev).expand(n, 2)
+            rays = pixel_rays(K_t[0], h, w)  # [h*w,3], shared by the sweep and the scale normalisation
             with torch.no_grad():
-                depth, conf = plane_sweep(img.mean(1, keepdim=True), K_t, R, t, rng, **self.mvs_options)
+                depth, conf = plane_sweep(img.mean(1, keepdim=True), K_t[0], R, t, rng, rays=rays,
+                                          **self.mvs_options)
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
-            rays = pixel_rays(K_t, h, w).T.reshape(3, h, w)
-            pts = torch.einsum("nij,jhw->nihw", R, rays) * depth[:, None] + t[:, :, None, None]
+            pts = torch.einsum("nij,jhw->nihw", R, rays.T.reshape(3, h, w)) * depth[:, None] + t[:, :, None, None]
             if float(conf.sum()) > 1e-6:
                 s = float((conf * pts.norm(dim=1)).sum() / conf.sum())
             else:
@@ -176,7 +176,7 @@ class ClassicalBackbone(Backbone):
             depth, conf = torch.ones(n, h, w, device=dev), torch.zeros(n, h, w, device=dev)
         dt = self.dtype
         inputs = ClassicalInputs(
-            images=img.to(dt), K=K_t.to(dt).expand(n, 3, 3).clone(), src_hw=(H, W),
+            images=img.to(dt), K=K_t.to(dt), src_hw=(H, W),
             base_R_wc=R.to(dt), base_t_wc=t.to(dt), base_depth=depth.to(dt), base_conf=conf.to(dt),
             corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
             diagnostics={**sfm.diagnostics, **timings})

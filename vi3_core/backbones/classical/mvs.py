@@ -39,18 +39,20 @@ def select_sources(n: int, *, n_sources: int) -> np.ndarray:
 
 
 def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: torch.Tensor,
-                depth_range: torch.Tensor, *, n_depths: int = 24, n_sources: int = 2, best_k: int = 2,
-                window: int = 7, temperature: float = 0.05, min_var: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
+                depth_range: torch.Tensor, *, rays: torch.Tensor | None = None, n_depths: int = 24, n_sources: int = 2,
+                best_k: int = 2, window: int = 7, temperature: float = 0.05,
+                min_var: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
     """Depth and confidence of every frame.
 
     gray [n,1,h,w] float images; K [3,3] at that resolution; R_wc [n,3,3], t_wc [n,3] camera-to-world (any
-    scale); depth_range [n,2] (near, far) per frame in the poses' units. Returns depth [n,h,w] (> 0, same units)
-    and conf [n,h,w] in [0, 1].
+    scale); depth_range [n,2] (near, far) per frame in the poses' units; rays [h*w,3]: ``pixel_rays(K, h, w)``
+    for a caller that has them already (built here otherwise). Returns depth [n,h,w] (> 0, same units) and
+    conf [n,h,w] in [0, 1].
     """
     n, _, h, w = gray.shape
     dt, dev = gray.dtype, gray.device
     sources = torch.as_tensor(select_sources(n, n_sources=n_sources), device=dev)
-    rays = pixel_rays(K, h, w).T  # [3,hw]
+    rays = (pixel_rays(K, h, w) if rays is None else rays).T  # [3,hw]
     steps = torch.linspace(0.0, 1.0, n_depths, dtype=dt, device=dev)
     # Each image normalised to zero mean, unit variance over its own windows before warping, so that the
     # normalised correlation of the warped source needs two box filters per plane instead of five.

@@ -50,7 +50,7 @@ def _bearings(uv: np.ndarray, K: np.ndarray) -> np.ndarray:
     return (uv - K[:2, 2]) / np.diag(K)[:2]
 
 
-def _project(points: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project(points: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World points [m,3] into n cameras -> pixels [m,n,2] and z-depths [m,n]."""
     Xc = np.einsum("nji,mnj->mni", R_wc, points[:, None, :] - t_wc[None])  # R_wc^T (X - t)
     z = Xc[..., 2]
@@ -81,7 +81,7 @@ def _clean_points(points: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc:
                   K: np.ndarray, *, max_reproj_px: float, min_angle_deg: float) -> np.ndarray:
     """NaN out points seen in < 2 views, behind a camera, with a reprojection error above ``max_reproj_px``
     in any view, or whose rays meet at less than ``min_angle_deg`` (depth poorly constrained)."""
-    proj, z = _project(points, R_wc, t_wc, K)
+    proj, z = project(points, R_wc, t_wc, K)
     err = np.where(visible, np.linalg.norm(proj - uv, axis=-1), 0.0)
     rays = points[:, None, :] - t_wc[None]
     with np.errstate(invalid="ignore"):
@@ -182,7 +182,7 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, stationary_px: float = 0.5,
         points = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px,
                                min_angle_deg=min_angle_deg)
     good = np.isfinite(points[:, 0])
-    proj, _ = _project(points[good], R_wc, t_wc, K)
+    proj, _ = project(points[good], R_wc, t_wc, K)
     err = np.linalg.norm(proj - uv[good], axis=-1)[visible[good]]
     diag.update(points=int(good.sum()), reproj_px_median=float(np.median(err)) if err.size else float("nan"))
     return SfmResult(R_wc, t_wc, points, OK, "ok", diag)
