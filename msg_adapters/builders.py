@@ -15,6 +15,7 @@ from msg_adapters.poses import (
     poses_to_T,
     tf_message,
     tf_message_to_list,
+    transform_stamped,
     transform_to_T,
 )
 
@@ -34,5 +35,6 @@ __all__ = [
     "poses_to_T",
     "tf_message",
     "tf_message_to_list",
+    "transform_stamped",
     "transform_to_T",
 ]

@@ -3,6 +3,9 @@
 Distortion models and their coefficients (OpenCV order):
 ``plumb_bob``: k1, k2, p1, p2, k3 (5); ``rational_polynomial``: k1, k2, p1, p2, k3, k4, k5, k6 (8, or 12/14
 with OpenCV's thin-prism and tilt terms); ``equidistant`` (fisheye): k1, k2, k3, k4 (4).
+
+ROS 2 names the arrays ``d``, ``k``, ``r``, ``p``; ROS 1 (and bags converted from ROS 1, whose message definitions
+keep the ROS 1 names) ``D``, ``K``, ``R``, ``P``. Reading accepts both; building writes the ROS 2 names.
 """
 
 from __future__ import annotations
@@ -48,10 +51,17 @@ def _check_calib(K: Any, dist_model: Any, dist: Any) -> tuple[np.ndarray, str, n
     return K, model, dist
 
 
+def _array(msg: Any, name: str) -> Any:
+    """The CameraInfo array ``name`` ("d" or "k") under its ROS 2 name, else its ROS 1 name (upper case)."""
+    value = getattr(msg, name, None)
+    return getattr(msg, name.upper(), None) if value is None else value
+
+
 def camera_info_to_calib(msg: Any) -> tuple[np.ndarray, str, np.ndarray, tuple[int, int]]:
-    """``sensor_msgs/CameraInfo`` -> (K [3,3], distortion model, d [k], (width, height))."""
-    K = float_array(msg.k, "k", size=9).reshape(3, 3)
-    K, model, dist = _check_calib(K, msg.distortion_model, float_array(msg.d, "d"))
+    """``sensor_msgs/CameraInfo`` (ROS 2 or ROS 1 field names) -> (K [3,3] px, distortion model, d [k],
+    (width, height) px)."""
+    K = float_array(_array(msg, "k"), "k", size=9).reshape(3, 3)
+    K, model, dist = _check_calib(K, msg.distortion_model, float_array(_array(msg, "d"), "d"))
     width, height = uint_field(msg.width, "width"), uint_field(msg.height, "height")
     if width == 0 or height == 0:
         raise MalformedMessage(f"image size width x height = {width} x {height} is empty")

@@ -16,7 +16,7 @@ import numpy as np
 
 from msg_adapters.errors import MalformedMessage
 from msg_adapters.fields import float_array, vector_field
-from msg_adapters.stamps import make_header, sec_to_ns, stamp_to_sec
+from msg_adapters.stamps import NS_PER_S, make_header, sec_to_ns, stamp_to_ns
 from msg_adapters.types import MessageTypes
 from vi3_core.types import ImuSamples
 
@@ -25,9 +25,11 @@ _NO_ORIENTATION = -1.0
 
 @dataclass(frozen=True)
 class ImuSample:
-    """One IMU message: t float64 s, gyro [3] rad/s, accel [3] m/s^2, orientation [4] (x, y, z, w) or None."""
+    """One IMU message: stamp as t float64 s and t_ns int ns (exact), gyro [3] rad/s, accel [3] m/s^2, orientation
+    [4] (x, y, z, w) or None."""
 
     t: float
+    t_ns: int
     gyro: np.ndarray
     accel: np.ndarray
     orientation: np.ndarray | None
@@ -38,7 +40,8 @@ def imu_to_sample(msg: Any) -> ImuSample:
     for name in ("angular_velocity_covariance", "linear_acceleration_covariance"):
         float_array(getattr(msg, name), name, size=9)
     has_orientation = float_array(msg.orientation_covariance, "orientation_covariance", size=9)[0] != _NO_ORIENTATION
-    return ImuSample(t=stamp_to_sec(getattr(getattr(msg, "header", None), "stamp", None), name="header.stamp"),
+    ns = stamp_to_ns(getattr(getattr(msg, "header", None), "stamp", None), name="header.stamp")
+    return ImuSample(t=ns / NS_PER_S, t_ns=ns,
                      gyro=vector_field(msg.angular_velocity, "angular_velocity"),
                      accel=vector_field(msg.linear_acceleration, "linear_acceleration"),
                      orientation=vector_field(msg.orientation, "orientation", "xyzw") if has_orientation else None)

@@ -155,15 +155,21 @@ def odometry_to_numpy(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
             float_array(msg.twist.covariance, "twist.covariance", size=36).reshape(6, 6))
 
 
+def transform_stamped(T: np.ndarray, *, parent: str, child: str, stamp_ns: int, types: MessageTypes,
+                      name: str = "T") -> Any:
+    """[4,4] T_parent_child (translation in metres) -> ``geometry_msgs/TransformStamped`` with ``header.frame_id =
+    parent``, ``child_frame_id = child`` and the stamp ``stamp_ns`` (integer ns); ``name`` labels errors."""
+    tr = _rigid_msgs(_transforms(T, name, single=True)[None], types, kind="Transform")[0]
+    return types.make("geometry_msgs/msg/TransformStamped",
+                      header=make_header(stamp_ns=stamp_ns, frame_id=parent, types=types),
+                      child_frame_id=str_field(child, f"{name} child"), transform=tr)
+
+
 def tf_message(transforms: Sequence[tuple[np.ndarray, str, str, int]], *, types: MessageTypes) -> Any:
     """[(T_parent_child [4,4], parent, child, stamp_ns), ...] -> ``tf2_msgs/TFMessage``."""
-    stamped = []
-    for i, (T, parent, child, stamp_ns) in enumerate(transforms):
-        tr = _rigid_msgs(_transforms(T, f"transforms[{i}]", single=True)[None], types, kind="Transform")[0]
-        stamped.append(types.make("geometry_msgs/msg/TransformStamped",
-                                  header=make_header(stamp_ns=stamp_ns, frame_id=parent, types=types),
-                                  child_frame_id=str_field(child, f"transforms[{i}] child"), transform=tr))
-    return types.make("tf2_msgs/msg/TFMessage", transforms=stamped)
+    return types.make("tf2_msgs/msg/TFMessage", transforms=[
+        transform_stamped(T, parent=parent, child=child, stamp_ns=stamp_ns, types=types, name=f"transforms[{i}]")
+        for i, (T, parent, child, stamp_ns) in enumerate(transforms)])
 
 
 def tf_message_to_list(msg: Any) -> list[tuple[np.ndarray, str, str, int]]:

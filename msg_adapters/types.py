@@ -27,8 +27,9 @@ import numpy as np
 from msg_adapters.errors import UnknownMessageType
 
 
-def _full_name(name: str) -> str:
-    """``"sensor_msgs/Image"`` or ``"sensor_msgs/msg/Image"`` -> ``"sensor_msgs/msg/Image"``."""
+def full_name(name: str) -> str:
+    """``"sensor_msgs/Image"`` (ROS 1 style) or ``"sensor_msgs/msg/Image"`` -> ``"sensor_msgs/msg/Image"``; any other
+    shape raises ``UnknownMessageType``."""
     parts = name.split("/")
     if len(parts) == 2 and all(parts):
         return f"{parts[0]}/msg/{parts[1]}"
@@ -63,7 +64,7 @@ class MessageTypes(abc.ABC):
 
     def get(self, name: str) -> type:
         """The message class of ``name`` ("sensor_msgs/msg/Image" or "sensor_msgs/Image"), cached."""
-        full = _full_name(name)
+        full = full_name(name)
         cls = self._classes.get(full)
         if cls is None:
             try:

@@ -14,7 +14,7 @@ from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
 from vi3_core.errors import DataError
 from vi3_ros import cli
 from vi3_ros.io.convert import convert_to_rosbag2
-from vi3_ros.io.reader import ImageEvent, ImuEvent, iter_events, open_sequence
+from vi3_ros.io.reader import ImageEvent, ImuEvent, iter_events, merge_by_time, open_sequence
 from vi3_ros.io.ros1 import noetic_typestore, ros1_types, write_ros1_bag
 
 
@@ -128,3 +128,13 @@ def test_bundled_bag_is_the_make_bag_sequence(cache_dir):
     assert np.array_equal(seq.stamps_ns, fresh.stamps_ns) and np.array_equal(seq.imu.gyro, fresh.imu.gyro)
     for i in (0, 18, 36):
         assert np.array_equal(seq.image(i), fresh.image(i))
+
+
+def test_merge_by_time_is_the_record_order():
+    """ASL streams (frames, IMU, ground truth) merge by stamp, ties by stream then index, as bags record them."""
+    rng = np.random.default_rng(0)
+    streams = [np.sort(rng.integers(0, 50, size=n)) for n in (7, 30, 12)]
+    expected = sorted((int(ns), k, i) for k, s in enumerate(streams) for i, ns in enumerate(s))
+    assert list(merge_by_time(*streams)) == expected
+    one = [(int(ns), 1, i) for i, ns in enumerate(streams[0])]
+    assert list(merge_by_time(np.zeros(0, np.int64), streams[0])) == one

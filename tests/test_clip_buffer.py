@@ -14,7 +14,7 @@ IMU_DT = 0.005  # 200 Hz
 
 
 def _events(seconds: float, *, cam_t0: float = 1.0, imu_t0: float = 0.9, skip_frames=(), imu_until=None):
-    """Time-ordered ("img", ns) / ("imu", t) events like a bag."""
+    """Time-ordered (t s, "img" | "imu", stamp ns) events like a bag."""
     ev = []
     n_img = int(seconds / (CAM_DT_NS * 1e-9))
     for i in range(n_img):
@@ -22,7 +22,7 @@ def _events(seconds: float, *, cam_t0: float = 1.0, imu_t0: float = 0.9, skip_fr
             ev.append((cam_t0 + i * CAM_DT_NS * 1e-9, "img", int(round(cam_t0 * 1e9)) + i * CAM_DT_NS))
     end = cam_t0 + seconds + 0.2 if imu_until is None else imu_until
     for t in np.arange(imu_t0, end, IMU_DT):
-        ev.append((float(t), "imu", float(t)))
+        ev.append((float(t), "imu", int(round(t * 1e9))))
     ev.sort(key=lambda e: (e[0], e[1] == "img"))
     return ev
 
@@ -133,7 +133,7 @@ def test_bounded_imu_buffer_and_history():
     ev = _events(1.0)
     ev = [e for e in ev if e[1] == "imu"] + [e for e in ev if e[1] == "img"]
     out = _run(buf, ev)
-    assert len(buf._imu_t) == 50
+    assert len(buf._imu) == 50
     assert all(d.reason in ("imu_missing", "imu_stalled") for d in out if isinstance(d, Drop))
     buf = ClipBuffer(ClipBufferOptions(n=4, stride=1, history=0.1))
     c = _clips(_run(buf, _events(1.0)))[1]
@@ -146,7 +146,7 @@ def test_nan_samples_pass_through_and_orientation_kept():
     out = []
     for k in range(60):
         t = 0.9 + k * IMU_DT
-        out += buf.add_imu(t, [np.nan, 0, 0] if k == 25 else [0, 0, 0], [9.81, 0, 0], [0, 0, 0, 1])
+        out += buf.add_imu(int(round(t * 1e9)), [np.nan, 0, 0] if k == 25 else [0, 0, 0], [9.81, 0, 0], [0, 0, 0, 1])
         if k % 10 == 5:
             out += buf.add_image(int(round(t * 1e9)), np.zeros((2, 2), np.uint8))
     c = _clips(out)[0]
@@ -157,3 +157,47 @@ def test_nan_samples_pass_through_and_orientation_kept():
 def test_options_validated():
     with pytest.raises(DataError, match="stride"):
         ClipBufferOptions(stride=0)
+
+
+def test_drops_carry_exact_integer_stamps():
+    """Drop stamps are the messages' own int ns (float seconds cannot hold ns at epoch magnitudes)."""
+    t0 = 1_403_636_579_763_555_584  # EuRoC MH_01's first frame
+    buf = ClipBuffer(ClipBufferOptions(n=2, stride=1, imu_timeout=0.01, time_offset=0.003))
+    img = np.zeros((2, 2), np.uint8)
+    imu_ns = t0 - 3_333_333
+    assert not buf.add_imu(imu_ns, [0, 0, 0], [0, 0, 9.81])
+    (dup,) = buf.add_imu(imu_ns, [0, 0, 0], [0, 0, 9.81])
+    assert (dup.reason, dup.stamp_ns) == ("imu_duplicate", imu_ns)
+    assert buf.add_image(t0, img) == [] and buf.add_image(t0 + 50_000_001, img) == []  # a clip waits for IMU
+    (old,) = buf.add_image(t0 + 1, img)
+    assert (old.reason, old.stamp_ns) == ("image_out_of_order", t0 + 1)
+    (stalled,) = [d for d in buf.add_image(t0 + 100_000_003, img) if isinstance(d, Drop)]
+    assert (stalled.reason, stalled.clip, stalled.stamp_ns) == ("imu_stalled", 0, t0 + 50_000_001)
+    assert stalled.t == pytest.approx((t0 + 50_000_001) * 1e-9 + 0.003)  # float s in IMU time beside it
+
+
+def test_imu_sample_costs_constant_memory_while_a_clip_waits():
+    """While a complete clip waits for IMU, a sample is O(1): the IMU buffer is not copied per sample (only when a
+    clip is emitted), so a large buffer costs nothing per message."""
+    import tracemalloc
+
+    n_samples = 100_000
+    buf = ClipBuffer(ClipBufferOptions(n=2, stride=1, imu_capacity=400_000, imu_timeout=60.0))
+    for k in range(n_samples):
+        buf.add_imu(k * 5_000_000, [0, 0, 0], [0, 0, 9.81])
+    t_frames = (n_samples + 2000) * 5_000_000
+    for k in range(2):
+        assert buf.add_image(t_frames + k * 50_000_000, np.zeros((2, 2), np.uint8)) == []
+    tracemalloc.start()
+    try:
+        for k in range(n_samples, n_samples + 1000):
+            assert buf.add_imu(k * 5_000_000, [0, 0, 0], [0, 0, 9.81]) == []
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 64_000, peak  # a copy of the buffered stamps alone would be 8 bytes x 100k samples
+    out = []
+    for k in range(n_samples + 1000, n_samples + 2200):  # the IMU catches up: the clip comes out whole
+        out += buf.add_imu(k * 5_000_000, [0, 0, 0], [0, 0, 9.81])
+    (clip,) = _clips(out)
+    assert clip.imu.t[0] < clip.stamps[0] < clip.stamps[-1] < clip.imu.t[-1] and len(clip.imu.t) == 13

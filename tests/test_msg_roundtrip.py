@@ -9,13 +9,15 @@ from scipy.spatial.transform import Rotation
 
 from msg_adapters import builders
 from msg_adapters.camera_info import calib_to_camera_info, camera_info_to_calib
+from msg_adapters.errors import UnknownMessageType
 from msg_adapters.image import depth_to_image, image_to_numpy, numpy_to_image
-from msg_adapters.imu import imus_to_samples, samples_to_imus
-from msg_adapters.stamps import stamp_to_ns
-from msg_adapters.types import jazzy_types
+from msg_adapters.imu import imu_to_sample, imus_to_samples, samples_to_imus
+from msg_adapters.stamps import ns_to_stamp, stamp_to_ns
+from msg_adapters.types import full_name, jazzy_types
 from vi3_core.sim.imu import imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
 from vi3_core.so3 import make_T
+from vi3_ros.io.ros1 import noetic_typestore, ros1_types
 
 TYPES = jazzy_types()
 STAMP = 1403636579758555392
@@ -80,6 +82,13 @@ def test_imu_round_trip_with_partial_orientation():
     np.testing.assert_array_equal(back.orientation, ori)
 
 
+def test_imu_sample_keeps_the_exact_stamp():
+    ns = [STAMP + 1, STAMP + 5_000_003]
+    samples = type(imus_to_samples([]))(np.array(ns) * 1e-9, np.zeros((2, 3)), np.zeros((2, 3)))
+    got = [imu_to_sample(cdr(m)) for m in samples_to_imus(samples, frame_id="imu0", types=TYPES, stamps_ns=ns)]
+    assert [s.t_ns for s in got] == ns and [s.t for s in got] == [n / 1e9 for n in ns]
+
+
 def test_imu_without_orientation_gives_none():
     sim = simulate_imu(make_trajectory("drone", seed=4), imu_stamps(10.0, 10.1), seed=4)
     back = imus_to_samples([cdr(m) for m in samples_to_imus(sim.samples, frame_id="imu0", types=TYPES)])
@@ -141,6 +150,43 @@ def test_tf_message_round_trip():
     back = builders.tf_message_to_list(cdr(builders.tf_message(items, types=TYPES)))
     assert [(p, c, s) for _, p, c, s in back] == [(p, c, s) for _, p, c, s in items]
     np.testing.assert_allclose(np.stack([b[0] for b in back]), T, atol=1e-12)
+
+
+def test_transform_stamped_in_ros2_and_ros1():
+    """One TransformStamped builder for both: the Jazzy classes (CDR) and the Noetic ones (ROS 1 bags, seq 0)."""
+    T = random_T(np.random.default_rng(5), 1)[0]
+    msg = cdr(builders.transform_stamped(T, parent="world", child="body", stamp_ns=STAMP, types=TYPES))
+    assert (msg.header.frame_id, msg.child_frame_id, stamp_to_ns(msg.header.stamp)) == ("world", "body", STAMP)
+    np.testing.assert_allclose(builders.transform_to_T(msg.transform), T, atol=1e-12)
+    ros1 = builders.transform_stamped(T, parent="world", child="body", stamp_ns=STAMP, types=ros1_types())
+    store = noetic_typestore()
+    back = store.deserialize_ros1(store.serialize_ros1(ros1, ros1.__msgtype__), ros1.__msgtype__)
+    assert back.header.seq == 0 and stamp_to_ns(back.header.stamp) == STAMP
+    np.testing.assert_array_equal(builders.transform_to_T(back.transform), builders.transform_to_T(msg.transform))
+
+
+def test_camera_info_with_ros1_field_names():
+    """ROS 1 CameraInfo (and bags converted from ROS 1) name the arrays D, K, R, P: they read the same."""
+    store = noetic_typestore()
+    K = np.array([[458.654, 0.0, 367.215], [0.0, 457.296, 248.375], [0.0, 0.0, 1.0]])
+    d = np.array([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0])
+    header = store.types["std_msgs/msg/Header"](seq=0, stamp=ns_to_stamp(STAMP, types=TYPES), frame_id="cam0")
+    roi = store.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    msg = store.types["sensor_msgs/msg/CameraInfo"](header=header, height=480, width=752, distortion_model="plumb_bob",
+                                                     D=d, K=K.reshape(9), R=np.eye(3).reshape(9),
+                                                     P=np.c_[K, np.zeros(3)].reshape(12), binning_x=0, binning_y=0,
+                                                     roi=roi)
+    back = store.deserialize_ros1(store.serialize_ros1(msg, msg.__msgtype__), msg.__msgtype__)
+    K2, model, d2, size = camera_info_to_calib(back)
+    np.testing.assert_array_equal(K2, K)
+    np.testing.assert_array_equal(d2, d)
+    assert (model, size) == ("plumb_bob", (752, 480))
+
+
+def test_full_type_names():
+    assert full_name("sensor_msgs/Image") == full_name("sensor_msgs/msg/Image") == "sensor_msgs/msg/Image"
+    with pytest.raises(UnknownMessageType, match="'Image'"):
+        full_name("Image")
 
 
 def test_diagnostic_array_round_trip():

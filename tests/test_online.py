@@ -14,17 +14,20 @@ from rosbags.highlevel import AnyReader
 from msg_adapters.diagnostics import diagnostic_array_to_statuses
 from msg_adapters.poses import odometry_to_numpy, poses_to_T, tf_message_to_list
 from msg_adapters.stamps import stamp_to_ns
+from vi3_core import so3
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.eval import metrics
 from vi3_core.eval.chained import chained_metrics
 from vi3_core.eval.metrics import gt_camera_poses
 from vi3_core.eval.tum import read_tum
 from vi3_core.init import initialise_clip
 from vi3_core.init.position_fit import fit_positions
 from vi3_core.online import OnlineEstimator
-from vi3_core.preintegration import preintegrate
+from vi3_core.online.window import WindowClip, WindowSystem
+from vi3_core.preintegration import accel_bias_jacobians, preintegrate
 from vi3_core.types import AnchorResult, Geometry
 from vi3_ros.cli import main as vi3_main
 
@@ -77,9 +80,63 @@ def test_position_fit_recovers_scale_and_velocity_of_exact_geometry(seq):
     assert abs(fixed.scale / TRUE_SCALE - 1) < 0.02 and fixed.rms < 0.02
 
 
+def test_accel_bias_jacobians_are_exact(seq):
+    """beta and alpha are linear in ba: preintegrating with ba = e_i moves them by exactly the Jacobian's column."""
+    stamps = seq.stamps[10:60:3]
+    imu, bg = seq.imu.window(stamps[0], stamps[-1]), np.array([0.01, -0.02, 0.005])
+    base = preintegrate(imu, stamps, bg)
+    J_beta, J_alpha = accel_bias_jacobians(imu, stamps, bg)
+    for i, e in enumerate(np.eye(3)):
+        moved = preintegrate(imu, stamps, bg, e)
+        np.testing.assert_allclose(moved.alpha - base.alpha, J_alpha[..., i], atol=1e-12)
+        np.testing.assert_allclose(moved.beta - base.beta, J_beta[..., i], atol=1e-12)
+    assert np.abs(J_alpha[-1]).max() > 0.5 * (stamps[-1] - stamps[0]) ** 2 * 0.5  # not trivially zero
+
+
+def _window(seq, clips, scales, *, bg=None):
+    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC)[:, :3, 3] / s @ c.T_BC[:3, :3].T,
+                          np.asarray(c.gt.bg).reshape(3)) for c, s in zip(clips, scales)]
+    imu = seq.imu.window(clips[0].stamps[0], clips[-1].stamps[-1])
+    bg = np.asarray(clips[0].gt.bg).reshape(3) if bg is None else bg
+    return WindowSystem(members, imu, bg, clips[0].T_BC, gravity_norm=9.81, ba_weight=1.0, link_weight_s=0.05)
+
+
+def test_window_fit_recovers_each_clips_scale_gravity_and_velocity(seq):
+    """Exact camera positions at a different scale per clip, real IMU noise: every scale, gravity and velocity."""
+    idx = sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[2:9]
+    clips = [make_clip(seq, i, with_depth=False) for i in idx]
+    scales = np.linspace(0.5, 4.0, len(clips))
+    system = _window(seq, clips, scales)
+    fit = system.solve()
+    np.testing.assert_allclose(fit.scales, scales, rtol=0.02)  # IMU noise and drifting biases over 5 s
+    assert fit.rms.max() < 0.003 and np.all(fit.scale_rel_sigma < 0.01)
+    for k, clip in enumerate(clips):
+        g_gt, v_gt, _ = metrics.gt_init_state(clip.gt)
+        g, v = system.state_at(k, fit)
+        assert np.degrees(so3.angle_between(g, g_gt)) < 0.3 and np.linalg.norm(v - v_gt) < 0.02, k
+
+
+def test_window_fit_exposes_a_broken_clip_and_an_unobservable_one(seq):
+    idx = sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[2:7]
+    clips = [make_clip(seq, i, with_depth=False) for i in idx]
+    good = _window(seq, clips, np.ones(len(clips))).solve()
+    broken = WindowClip(clips[-1].stamps, np.zeros((clips[-1].n, 3)), np.zeros(3))
+    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC)[:, :3, 3] @ c.T_BC[:3, :3].T,
+                          np.asarray(c.gt.bg).reshape(3)) for c in clips]
+    twisted = members[:-1] + [WindowClip(members[-1].stamps, members[-1].a[:, [1, 0, 2]], members[-1].bg)]
+    imu = seq.imu.window(clips[0].stamps[0], clips[-1].stamps[-1])
+    bg = np.asarray(clips[0].gt.bg).reshape(3)
+    kw = dict(gravity_norm=9.81, ba_weight=1.0, link_weight_s=0.05)
+    bad = WindowSystem(twisted, imu, bg, clips[0].T_BC, **kw).solve()
+    assert bad.rms.max() > 10 * good.rms.max()  # swapped axes: positions no IMU motion can explain
+    still = WindowSystem(members[:-1] + [broken], imu, bg, clips[0].T_BC, **kw).solve()
+    assert not still.scale_rel_sigma[-1] < 0.05  # no visual translation: no scale, however the IMU moved
+
+
 def test_priors_improve_scale_over_independent_clips_and_chain_stays_level(seq):
     est, online, free, decisions = _run(seq)
-    assert sum(d.startswith("priors: g,v1,bg") for d in decisions) >= len(decisions) // 2, decisions
+    assert sum("priors: g,v1" in d for d in decisions) >= len(decisions) // 2, decisions
+    assert max(int(d.split()[1]) for d in decisions) >= 5  # the window grows to several clips
     after = slice(3, None)
     assert np.nanmedian(online[after]) <= 0.5 * np.nanmedian(free[after]), (online, free)
     traj = est.trajectory
@@ -99,16 +156,18 @@ def test_image_gap_resets_and_recovers_within_three_clips(seq):
              if not 4.0 <= seq.stamps[idx[0]] - seq.stamps[0] < 6.0]  # 2 s without images
     est, _, _, decisions = _run(seq, clips=clips)
     k = next(i for i, d in enumerate(decisions) if "reset: gap" in d)
-    assert k > 0 and any(d.startswith("priors: g,v1,bg") for d in decisions[k + 1:k + 4]), decisions
+    assert decisions[k].startswith("window 1 clips"), decisions[k]  # the window restarted from this clip
+    assert k > 0 and any("priors: g,v1" in d for d in decisions[k + 1:k + 4]), decisions
     assert len(est.trajectory.resets) == 1
 
 
 def test_corrupted_velocity_prior_is_rejected_and_named(seq):
     baseline = _run(seq)[3]
-    k = next(i for i, d in enumerate(baseline) if i >= 2 and d.startswith("priors: g,v1,bg"))
+    k = next(i for i, d in enumerate(baseline) if i >= 2 and "priors: g,v1" in d)
     decisions = _run(seq, corrupt_at=k)[3]
     assert decisions[:k] == baseline[:k]
-    assert "v1 prior rejected" in decisions[k] and decisions[k].startswith("priors: g,bg"), decisions[k]
+    assert "v1 prior rejected" in decisions[k] and "priors: g;" in decisions[k], decisions[k]
+    assert "reset" not in decisions[k]  # the clip itself still takes the window's estimate
 
 
 def _read(path) -> dict[str, list]:
@@ -149,10 +208,29 @@ def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
     assert vi3_main([*common, "--export-tum", str(tmp_path)]) == 0
     obj = json.loads(capsys.readouterr().out)
     chained = obj["chained"]
-    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets"} <= set(chained) and chained["resets"] == 0
+    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets", "scale_err_median",
+            "independent_scale_err_median"} <= set(chained) and chained["resets"] == 0
     assert all(np.isfinite(chained[k]) for k in ("ate_m", "drift_pct", "gravity_err_deg"))
+    assert chained["scale_err_median"] is None  # 2 clips: none after the first 3
     assert len(chained["decisions"]) == obj["n_clips"] == 2 and obj["vi3"]["scale_traj"] is not None
     stamps, T = read_tum(tmp_path / "odom_vi3.txt")
     assert len(stamps) == chained["frames"] == 16 and np.all(np.diff(stamps) > 0)
     assert vi3_main([*common, "--independent"]) == 0
     assert "chained" not in json.loads(capsys.readouterr().out)
+
+
+def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
+    """Several inputs: each sequence reported, then their clips pooled (JSON "sequences" + "pooled"); plots and TUM
+    files are named after the sequences."""
+    paths = [cached_sequence(cache_dir, seconds=2.5, seed=seed, with_depth=False) for seed in (1, 3)]
+    rc = vi3_main(["eval", *map(str, paths), "--json", "--clips", "sliding", "--max-clips", "2", "--no-progress",
+                   "--plot", str(tmp_path / "eval.png"), "--export-tum", str(tmp_path / "tum")])
+    obj = json.loads(capsys.readouterr().out)
+    assert rc == 0 and [s["n_clips"] for s in obj["sequences"]] == [2, 2]
+    names = [s["sequence"] for s in obj["sequences"]]
+    assert len(set(names)) == 2 and obj["pooled"]["n_clips"] == 4
+    pooled = obj["pooled"]["chained"]
+    assert pooled["sequences"] == 2 and pooled["resets"] == 0
+    assert pooled["drift_pct_max"] == max(s["chained"]["drift_pct"] for s in obj["sequences"])
+    assert all((tmp_path / f"eval_{n}.png").is_file() and (tmp_path / "tum" / n / "odom_vi3.txt").is_file()
+               for n in names)

@@ -18,13 +18,16 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
+from rosbags.rosbag1 import Reader as Ros1Reader
+from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from msg_adapters.camera_info import calib_to_camera_info
 from msg_adapters.diagnostics import diagnostic_array_to_statuses
 from msg_adapters.image import image_to_numpy
 from msg_adapters.pointcloud import point_cloud2_to_numpy
-from msg_adapters.poses import poses_to_T, tf_message
+from msg_adapters.poses import poses_to_T, tf_message, transform_stamped
 from msg_adapters.stamps import ns_to_stamp, stamp_to_ns
 from msg_adapters.types import jazzy_types
 from vi3_core.dataset.asl import read_asl
@@ -33,7 +36,7 @@ from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
 from vi3_core.eval.metrics import scale_traj
 from vi3_ros.cli import main as vi3_main
 from vi3_ros.io.convert import convert_to_rosbag2
-from vi3_ros.io.ros1 import write_ros1_bag
+from vi3_ros.io.ros1 import ros1_types, write_ros1_bag
 from vi3_ros.params import resolve
 from vi3_ros.replay import replay
 
@@ -344,3 +347,102 @@ def test_fault_missing_calibration_then_camera_info(bag3, tmp_path):
     assert "CameraInfo" in first.values["detail"]
     assert any("calibration_missing" in m for m in _diag_messages(msgs))
     _assert_recovers(msgs, 0)
+
+
+# -------------------------------------------------------------------------------------------- input forms
+def _ros1_with_calibration(src: Path, dst: Path, *, until_ns: int) -> Path:
+    """The ROS 1 bag ``src`` up to log time ``until_ns`` plus, as a ROS 1 driver records them, ``/tf_static``
+    (imu0 -> cam0 = EUROC_CAM0's T_BC) and ``sensor_msgs/CameraInfo`` with ROS 1 field names (D, K, R, P) on
+    /cam0/camera_info, one per frame from the first frame on."""
+    store = get_typestore(Stores.ROS1_NOETIC)  # a fresh one: TFMessage is registered here only
+    store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+    types, c = ros1_types(), EUROC_CAM0
+    with Ros1Reader(src) as reader, Ros1Writer(dst) as writer:
+        conns = {conn.topic: writer.add_connection(conn.topic, conn.msgtype, typestore=store)
+                 for conn in reader.connections}
+        info = writer.add_connection("/cam0/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
+        tf = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=store)
+        first = True
+        for conn, t, raw in reader.messages(stop=until_ns + 1):
+            if first:
+                msg = store.types["tf2_msgs/msg/TFMessage"](transforms=[transform_stamped(
+                    c.T_BC, parent="imu0", child="cam0", stamp_ns=t, types=types)])
+                writer.write(tf, t, store.serialize_ros1(msg, tf.msgtype))
+                first = False
+            if conn.topic == "/cam0/image_raw":
+                header = store.types["std_msgs/msg/Header"](seq=0, stamp=ns_to_stamp(t, types=types), frame_id="cam0")
+                roi = store.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                                      do_rectify=False)
+                msg = store.types["sensor_msgs/msg/CameraInfo"](
+                    header=header, height=c.size[1], width=c.size[0], distortion_model="plumb_bob",
+                    D=np.r_[c.dist, 0.0], K=c.K.reshape(9), R=np.eye(3).reshape(9),
+                    P=np.c_[c.K, np.zeros(3)].reshape(12), binning_x=0, binning_y=0, roi=roi)
+                writer.write(info, t, store.serialize_ros1(msg, info.msgtype))
+            writer.write(conns[conn.topic], t, raw)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def calibrated_inputs(bag3, tmp_path_factory):
+    """One clip of the 2.5 s sequence with CameraInfo and /tf_static in every form the reader takes: ROS 1 bag,
+    rosbag2 directory (converted by rosbags), its bare .mcap file and a make-bag folder (OUT/mcap/)."""
+    asl, src = bag3
+    tmp = tmp_path_factory.mktemp("calibrated")
+    ros1 = _ros1_with_calibration(src.parent / "seq.bag", tmp / "ros1.bag", until_ns=_clip_window(asl, 0)[1]
+                                  + 60_000_000)
+    rosbag2 = convert_to_rosbag2(ros1, tmp / "make_bag" / "mcap")
+    return {"ros1": ros1, "rosbag2": rosbag2, "mcap_file": next(rosbag2.glob("*.mcap")), "make_bag": rosbag2.parent}
+
+
+@pytest.mark.parametrize("form", ["ros1", "rosbag2", "mcap_file", "make_bag"])
+def test_calibration_messages_from_every_bag_form(calibrated_inputs, form, tmp_path):
+    """No calibration file: CameraInfo (ROS 1 field names, as converted bags keep them) and /tf_static come through
+    the one reader in record order, whatever form the bag has, and calibrate the clip."""
+    summary, msgs = _run(calibrated_inputs[form], tmp_path / "out.mcap", calib="",
+                         camera_info_topic="/cam0/camera_info", use_tf_static=True)
+    assert _outcomes(msgs) == [("0", "init", "ok")] and len(msgs["/vi3_node/poses"]) == 1
+    if form == "rosbag2":  # without /tf_static there is no T_BC: the same bag then says so
+        _, msgs = _run(calibrated_inputs[form], tmp_path / "no_tf.mcap", calib="",
+                       camera_info_topic="/cam0/camera_info")
+        assert _outcomes(msgs)[0][1:] == ("skipped", "calibration_missing")
+        assert "extrinsics" in _statuses(msgs)[0].values["detail"]
+
+
+def test_asl_input_ignores_calibration_topics(bag3, tmp_path):
+    """An ASL folder has no CameraInfo or /tf_static: asking for them reads nothing more, calib_file calibrates
+    (short clips: they reach the initialisation, which is all this checks)."""
+    asl, _ = bag3
+    summary, msgs = _run(asl, tmp_path / "out.mcap", camera_info_topic="/cam0/camera_info", use_tf_static=True,
+                         clip_length=2, stride=1, hop=40)
+    statuses = _statuses(msgs)
+    assert summary.clips == len(statuses) == 2
+    assert all(s.values["result"] != "skipped" and s.values["init_status"] for s in statuses)
+
+
+# -------------------------------------------------------------------------------------------- diagnostics
+def test_dropped_inputs_are_counted_and_published_per_period(bag3, tmp_path):
+    """Every IMU message of a stretch arrives twice: each copy is dropped (imu_duplicate) and counted exactly, but
+    /diagnostics is published per clip, per diagnostics_period of bag time and once when the reason first appears
+    (stamped with the dropped message's exact stamp), not per dropped message."""
+    asl, src = bag3
+    seq = read_asl(asl)
+    t0, _ = _clip_window(asl, 0)
+    # from a stamp that float seconds cannot carry exactly (its ns do not survive ns -> s -> ns)
+    first = next(int(n) for n in seq.imu_ns if n > t0 and round(int(n) * 1e-9 * 1e9) != n)
+    until = _two_clips(asl)
+    twice = lambda topic, t, m: [(t, m), (t, m)] if topic == "/imu0" and t >= first else [(t, m)]
+    summary, msgs = _run(_edited(src, tmp_path / "dup", twice, until_ns=until), tmp_path / "out.mcap",
+                         diagnostics_period=0.5)
+    n_dup = int(np.sum((seq.imu_ns >= first) & (seq.imu_ns <= until)))
+    assert n_dup > 200 and summary.drops == {"imu_duplicate": n_dup}
+    diag = msgs["/diagnostics"]
+    periods = int(np.ceil(summary.bag_s / 0.5))
+    assert len(diag) <= summary.clips + periods + 2, len(diag)  # clips, periods, the first drop, the final counts
+    statuses = [diagnostic_array_to_statuses(m)[0] for m in diag]
+    news = [(stamp_to_ns(m.header.stamp), s) for m, s in zip(diag, statuses) if s.message.startswith("imu_dup")]
+    assert len(news) == 1 and news[0][0] == first and str(first) in news[0][1].message
+    assert statuses[-1].values["drop_imu_duplicate"] == str(n_dup)  # the final summary: exact totals
+    per_period = [int(s.message.rsplit(":", 1)[1]) for s in statuses if s.message.startswith("input drops")]
+    assert len(per_period) >= 2 and sum(per_period) == n_dup  # every drop in exactly one period's count
+    per_clip = sum(int(s.values["input_drops"].split(":")[1]) for s in _statuses(msgs) if s.values["input_drops"])
+    assert 0 < per_clip <= n_dup

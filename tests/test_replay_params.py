@@ -11,11 +11,15 @@ import pytest
 
 from msg_adapters.camera_info import calib_to_camera_info, camera_info_to_calib
 from msg_adapters.types import jazzy_types
+from vi3_core.anchor import AnchorOptions
 from vi3_core.dataset.calib import load_calib
 from vi3_core.dataset.generate import EUROC_CAM0
 from vi3_core.errors import CalibrationError, DataError
+from vi3_core.init import InitOptions
+from vi3_core.online import OnlineOptions
+from vi3_ros.clip_buffer import ClipBufferOptions
 from vi3_ros.commands.replay import register, values_from_args
-from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, parse_assignment, resolve
+from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, options, parse_assignment, resolve
 from vi3_ros.pipeline import Calibration, buffer_options, calib_from_camera_info
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,8 +43,27 @@ def test_checks_name_the_parameter():
         resolve({"clip_len": 4})
     with pytest.raises(DataError, match="stride: expected int"):
         resolve({"stride": 2.5})
-    assert parse_assignment("publish_tf=true") == ("publish_tf", True)
-    assert parse_assignment("time_offset=-0.01") == ("time_offset", -0.01)
+    # --param and parameter files only name the parameter; resolve checks and converts every value once
+    assert resolve(dict([parse_assignment("publish_tf=true"), parse_assignment("time_offset=-0.01")])) \
+        == {**resolve(), "publish_tf": True, "time_offset": -0.01}
+    with pytest.raises(DataError, match="stride: expected int, got '2.5'"):
+        resolve(dict([parse_assignment("stride=2.5")]))
+    with pytest.raises(DataError, match="--param 'strid=2'"):
+        parse_assignment("strid=2")
+
+
+def test_option_defaults_come_from_the_option_dataclasses():
+    """The parameters that set option fields default to the dataclasses' own defaults and map back onto them."""
+    values = resolve()
+    for cls in (ClipBufferOptions, OnlineOptions, InitOptions, AnchorOptions):
+        assert options(cls, values) == cls(), cls.__name__
+    assert values["hop"] == 0 and options(ClipBufferOptions, values).hop is None  # 0 stands for None
+    changed = resolve({"clip_length": 5, "hop": 3, "online_window": 4.0, "ttr_steps": 7, "max_imu_gap": 0.02})
+    assert (options(ClipBufferOptions, changed).n, options(ClipBufferOptions, changed).hop) == (5, 3)
+    assert options(OnlineOptions, changed).window_s == 4.0 and options(AnchorOptions, changed).steps == 7
+    assert options(InitOptions, changed).max_imu_gap_s == 0.02
+    assert buffer_options(values).history == values["online_max_gap"]  # online: IMU history covers the bridge
+    assert buffer_options({**values, "online": False}).history == ClipBufferOptions().history
 
 
 def test_euroc_config_loads_and_maps_to_buffer_options():
@@ -58,6 +81,9 @@ def test_bad_parameter_file(tmp_path):
     bad.write_text("vi3_node:\n  ros__parameters:\n    strde: 3\n")
     with pytest.raises(DataError, match="unknown parameter 'strde'"):
         load_yaml(bad)
+    bad.write_text("vi3_node:\n  ros__parameters:\n    stride: 0\n")
+    with pytest.raises(DataError, match="stride: 0 is outside"):
+        resolve(load_yaml(bad))
     bad.write_text("other_node:\n  ros__parameters: {}\n")
     with pytest.raises(DataError, match="no 'vi3_node: ros__parameters:'"):
         load_yaml(bad)

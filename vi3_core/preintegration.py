@@ -117,13 +117,27 @@ def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.nda
     bg = np.asarray(bg, dtype=np.float64)
     ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
     grid = grid or merged_grid(imu, stamps)
-    dt = np.diff(grid.t)
     R = integrate_rotations(grid, bg)
-    f = np.einsum("kij,kj->ki", R, grid.accel - ba)
-    dbeta = 0.5 * (f[:-1] + f[1:]) * dt[:, None]
-    beta = np.concatenate([np.zeros((1, 3)), np.cumsum(dbeta, axis=0)])
-    dalpha = beta[:-1] * dt[:, None] + (2.0 * f[:-1] + f[1:]) * (dt**2 / 6.0)[:, None]
-    alpha = np.concatenate([np.zeros((1, 3)), np.cumsum(dalpha, axis=0)])
+    beta, alpha = _integrate_force(np.einsum("kij,kj->ki", R, grid.accel - ba), np.diff(grid.t))
     fi = grid.frame_idx
     return Preintegration(stamps=stamps, tau=stamps - stamps[0], R=R[fi], beta=beta[fi], alpha=alpha[fi],
                           gyro_mean=interval_gyro_mean(grid), bg=bg, ba=ba)
+
+
+def accel_bias_jacobians(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, *,
+                         grid: Grid | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """d beta / d ba and d alpha / d ba at the stamps, [n,3,3] each (s and s^2): beta and alpha are linear in ba
+    (the force is R (a - ba)), so these are exact for any ba with the same scheme as ``preintegrate``."""
+    grid = grid or merged_grid(imu, stamps)
+    J_beta, J_alpha = _integrate_force(-integrate_rotations(grid, bg), np.diff(grid.t))
+    return J_beta[grid.frame_idx], J_alpha[grid.frame_idx]
+
+
+def _integrate_force(f: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """beta, alpha [K,...] on the grid from the force in B1, f [K,...] (linear in time on each of the K-1
+    intervals dt): trapezoidal velocity, exact double integral for position."""
+    dt = dt.reshape(-1, *([1] * (f.ndim - 1)))
+    dbeta = 0.5 * (f[:-1] + f[1:]) * dt
+    beta = np.concatenate([np.zeros_like(f[:1]), np.cumsum(dbeta, axis=0)])
+    dalpha = beta[:-1] * dt + (2.0 * f[:-1] + f[1:]) * (dt**2 / 6.0)
+    return beta, np.concatenate([np.zeros_like(f[:1]), np.cumsum(dalpha, axis=0)])

@@ -19,6 +19,9 @@ preintegration need a sample on each side). Faults become ``Drop`` events with a
   bounded buffer overflowed);
 - ``imu_stalled``: no IMU past the clip's last frame ``imu_timeout`` seconds (camera time) after it;
 - ``frame_overflow``: more clips waiting for IMU than ``max_pending`` (the oldest is dropped).
+
+Cost. An IMU sample is O(1) amortised: samples go into preallocated arrays, and arrays are cut out only when a clip
+is emitted. Stamps are int ns at the inputs and in ``Drop.stamp_ns`` (exact), float64 s (IMU time) inside.
 """
 
 from __future__ import annotations
@@ -87,11 +90,14 @@ class RawClip:
 
 @dataclass(frozen=True)
 class Drop:
-    """A message or clip that was discarded: ``reason`` is one of the names in the module docstring, ``t`` the
-    stamp concerned (s, IMU time for clips), ``detail`` a human-readable sentence, ``clip`` the clip index or -1."""
+    """A message or clip that was discarded: ``reason`` is one of the names in the module docstring; the stamp
+    concerned as ``t`` (float64 s, IMU time) and ``stamp_ns`` (the message's own header stamp, int ns, exact: camera
+    time for frames and clips, IMU time for IMU samples); ``detail`` a human-readable sentence; ``clip`` the clip
+    index or -1."""
 
     reason: str
     t: float
+    stamp_ns: int
     detail: str
     clip: int = -1
 
@@ -104,6 +110,51 @@ class _Open:
     images: list[np.ndarray] = field(default_factory=list)
 
 
+_ROW = 10  # gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw (NaN: none)
+
+
+class _ImuRing:
+    """The newest ``capacity`` IMU samples in preallocated arrays of twice that length: ``append`` is O(1)
+    amortised (when the storage end is reached, the kept samples move to the front once per ``capacity`` appends)
+    and ``t`` / ``rows`` are contiguous views [len] float64 s and [len,10] (``_ROW``), oldest first."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._t = np.empty(2 * capacity)
+        self._rows = np.empty((2 * capacity, _ROW))
+        self._start = self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def append(self, t: float, gyro, accel, orientation) -> None:
+        """One sample: t s, gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw (NaN: none)."""
+        if self._end == len(self._t):
+            n = len(self)
+            self._t[:n], self._rows[:n] = self._t[self._start:self._end], self._rows[self._start:self._end]
+            self._start, self._end = 0, n
+        self._t[self._end] = t
+        row = self._rows[self._end]
+        row[0:3], row[3:6], row[6:10] = gyro, accel, orientation
+        self._end += 1
+        if len(self) > self.capacity:
+            self._start += 1
+
+    @property
+    def t(self) -> np.ndarray:
+        return self._t[self._start:self._end]
+
+    @property
+    def rows(self) -> np.ndarray:
+        return self._rows[self._start:self._end]
+
+    def samples(self, lo: int, hi: int) -> ImuSamples:
+        """A copy of samples [lo, hi) (indices into ``t``) as ImuSamples (orientation None when all NaN)."""
+        rows = self.rows[lo:hi].copy()
+        ori = rows[:, 6:10]
+        return ImuSamples(self.t[lo:hi].copy(), rows[:, 0:3], rows[:, 3:6], None if np.isnan(ori).all() else ori)
+
+
 class ClipBuffer:
     """Collects frames and IMU samples; ``add_image``/``add_imu`` return the clips and drops they caused.
 
@@ -113,13 +164,13 @@ class ClipBuffer:
 
     def __init__(self, options: ClipBufferOptions | None = None) -> None:
         self.options = options or ClipBufferOptions()
-        cap = self.options.imu_capacity
-        self._imu_t: collections.deque[float] = collections.deque(maxlen=cap)
-        self._imu_rows: collections.deque[np.ndarray] = collections.deque(maxlen=cap)  # [10]: gyro, accel, quat
+        self._imu = _ImuRing(self.options.imu_capacity)
+        self._last_imu_ns: int | None = None
         self._open: list[_Open] = []
         self._pending: collections.deque[RawClip] = collections.deque()
         self._frame_no = 0  # input frames since the last (re)start
-        self._last_image_t: float | None = None
+        self._last_image_ns: int | None = None
+        self._last_image_t = 0.0  # IMU time of the last frame (s), valid when _last_image_ns is set
         self._intervals: collections.deque[float] = collections.deque(maxlen=16)
         self._next_index = 0
         self.counts: collections.Counter[str] = collections.Counter()
@@ -127,18 +178,20 @@ class ClipBuffer:
 
     # ---- inputs ---------------------------------------------------------------------------------------------
 
-    def add_imu(self, t: float, gyro, accel, orientation=None) -> list[RawClip | Drop]:
-        """One IMU sample: t s (IMU time), gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw or None.
+    def add_imu(self, stamp_ns: int, gyro, accel, orientation=None) -> list[RawClip | Drop]:
+        """One IMU sample: stamp int ns (IMU time), gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw or None.
 
-        Non-finite values are kept (validation downstream turns them into a clip status with a reason)."""
-        t = float(t)
-        if self._imu_t and t <= self._imu_t[-1]:
-            reason = "imu_duplicate" if t == self._imu_t[-1] else "imu_out_of_order"
-            return [self._drop(reason, t, f"IMU stamp {t:.9f} s is not after the previous {self._imu_t[-1]:.9f} s")]
-        ori = np.full(4, np.nan) if orientation is None else np.asarray(orientation, dtype=np.float64).reshape(4)
-        self._imu_t.append(t)
-        self._imu_rows.append(np.concatenate([np.asarray(gyro, np.float64).reshape(3),
-                                              np.asarray(accel, np.float64).reshape(3), ori]))
+        Non-finite values are kept (validation downstream turns them into a clip status with a reason).
+        O(1) amortised: nothing is copied unless a clip is released."""
+        stamp_ns = int(stamp_ns)
+        t = stamp_ns * 1e-9
+        last = self._last_imu_ns
+        if last is not None and stamp_ns <= last:
+            reason = "imu_duplicate" if stamp_ns == last else "imu_out_of_order"
+            return [self._drop(reason, t, stamp_ns, f"IMU stamp {stamp_ns} ns is not after the previous {last} ns")]
+        self._imu.append(t, np.asarray(gyro, np.float64).reshape(3), np.asarray(accel, np.float64).reshape(3),
+                         np.nan if orientation is None else np.asarray(orientation, np.float64).reshape(4))
+        self._last_imu_ns = stamp_ns
         return self._release()
 
     def add_image(self, t_cam_ns: int, image: np.ndarray) -> list[RawClip | Drop]:
@@ -146,17 +199,19 @@ class ClipBuffer:
         t_cam_ns = int(t_cam_ns)
         t = t_cam_ns * 1e-9 + self.options.time_offset
         out: list[RawClip | Drop] = []
-        last = self._last_image_t
-        if last is not None and t <= last:
-            reason = "image_duplicate" if t == last else "image_out_of_order"
-            return [self._drop(reason, t, f"frame stamp {t:.9f} s is not after the previous {last:.9f} s")]
-        if last is not None:
-            gap, limit = t - last, self._gap_limit()
+        last_ns = self._last_image_ns
+        if last_ns is not None and t_cam_ns <= last_ns:
+            reason = "image_duplicate" if t_cam_ns == last_ns else "image_out_of_order"
+            return [self._drop(reason, t, t_cam_ns, f"frame stamp {t_cam_ns} ns is not after the previous "
+                               f"{last_ns} ns")]
+        if last_ns is not None:
+            gap, limit = t - self._last_image_t, self._gap_limit()
             if limit is not None and gap > limit:
-                out += self._restart(t, f"frame gap of {gap:.3f} s before t={t:.6f} s exceeds {limit:.3f} s")
+                out += self._restart(t, t_cam_ns, f"frame gap of {gap:.3f} s before t={t:.6f} s exceeds "
+                                     f"{limit:.3f} s")
             else:
                 self._intervals.append(gap)
-        self._last_image_t = t
+        self._last_image_ns, self._last_image_t = t_cam_ns, t
         o = self.options
         if self._frame_no % o.clip_hop == 0:
             self._open.append(_Open(start=self._frame_no))
@@ -177,9 +232,13 @@ class ClipBuffer:
 
     # ---- internals ------------------------------------------------------------------------------------------
 
-    def _drop(self, reason: str, t: float, detail: str, clip: int = -1) -> Drop:
+    def _drop(self, reason: str, t: float, stamp_ns: int, detail: str, clip: int = -1) -> Drop:
         self.counts[reason] += 1
-        return Drop(reason, t, detail, clip)
+        return Drop(reason, t, stamp_ns, detail, clip)
+
+    def _clip_drop(self, reason: str, clip: RawClip, i: int, detail: str) -> Drop:
+        """A drop of waiting clip ``clip``, stamped with its frame ``i``."""
+        return self._drop(reason, float(clip.stamps[i]), int(clip.stamps_ns[i]), detail, clip.index)
 
     def _gap_limit(self) -> float | None:
         if self.options.max_frame_gap > 0:
@@ -188,8 +247,8 @@ class ClipBuffer:
             return None
         return 1.5 * float(np.median(self._intervals))  # one dropped frame (2x) restarts
 
-    def _restart(self, t: float, detail: str) -> list[Drop]:
-        drops = [self._drop("frame_gap", t, f"{detail}; open clip from t={c.stamps[0]:.6f} s dropped")
+    def _restart(self, t: float, stamp_ns: int, detail: str) -> list[Drop]:
+        drops = [self._drop("frame_gap", t, stamp_ns, f"{detail}; open clip from t={c.stamps[0]:.6f} s dropped")
                  for c in self._open if c.stamps]
         if not drops:
             self.counts["frame_gap"] += 1  # a gap with nothing to drop still counts as a restart
@@ -204,9 +263,8 @@ class ClipBuffer:
                                      tuple(clip.images), ImuSamples(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))))
         drops = []
         while len(self._pending) > self.options.max_pending:
-            old = self._pending.popleft()
-            drops.append(self._drop("frame_overflow", float(old.stamps[-1]),
-                                    f"more than {self.options.max_pending} clips waiting for IMU", old.index))
+            drops.append(self._clip_drop("frame_overflow", self._pending.popleft(), -1,
+                                         f"more than {self.options.max_pending} clips waiting for IMU"))
         return drops
 
     def _expire(self, t_now: float) -> list[Drop]:
@@ -214,40 +272,31 @@ class ClipBuffer:
         drops = []
         while self._pending and t_now - self._pending[0].stamps[-1] > self.options.imu_timeout:
             clip = self._pending.popleft()
-            newest = f"{self._imu_t[-1]:.6f} s" if self._imu_t else "none"
-            drops.append(self._drop("imu_stalled", float(clip.stamps[-1]),
-                                    f"no IMU past t={clip.stamps[-1]:.6f} s after {self.options.imu_timeout:.3f} s "
-                                    f"(newest IMU: {newest})", clip.index))
+            newest = f"{self._imu.t[-1]:.6f} s" if len(self._imu) else "none"
+            drops.append(self._clip_drop("imu_stalled", clip, -1, f"no IMU past t={clip.stamps[-1]:.6f} s after "
+                                         f"{self.options.imu_timeout:.3f} s (newest IMU: {newest})"))
         return drops
 
     def _release(self) -> list[RawClip | Drop]:
-        """Emit waiting clips (in order) whose IMU is complete."""
+        """Emit waiting clips (in order) whose IMU is complete. O(1) while the oldest clip still waits: it needs
+        ``imu_margin`` samples after its last frame, i.e. the margin-th newest sample past that frame."""
         out: list[RawClip | Drop] = []
         m = self.options.imu_margin
-        while self._pending and self._imu_t:
-            clip = self._pending[0]
+        t = self._imu.t
+        while self._pending and len(t) >= m and t[-m] > self._pending[0].stamps[-1]:
+            clip = self._pending.popleft()
             t0, t1 = float(clip.stamps[0]), float(clip.stamps[-1])
-            t = np.fromiter(self._imu_t, dtype=np.float64, count=len(self._imu_t))
             i1 = int(np.searchsorted(t, t1, side="right"))
-            if len(t) - i1 < m:
-                break  # wait for more IMU
-            self._pending.popleft()
             i0 = int(np.searchsorted(t, t0, side="left"))
             if i0 < m:
-                out.append(self._drop("imu_missing", t0, f"IMU buffer starts at {t[0]:.6f} s, after the clip's "
-                                      f"first frame at {t0:.6f} s (needs {m} sample(s) before)", clip.index))
+                out.append(self._clip_drop("imu_missing", clip, 0, f"IMU buffer starts at {t[0]:.6f} s, after the "
+                                           f"clip's first frame at {t0:.6f} s (needs {m} sample(s) before)"))
                 continue
-            h0 = i0 - m
+            hist = None
             if self.options.history > 0:
-                h0 = min(h0, int(np.searchsorted(t, t0 - self.options.history, side="left")))
-            rows = np.stack([self._imu_rows[i] for i in range(h0, i1 + m)])
-            imu = _samples(t[i0 - m:i1 + m], rows[i0 - m - h0:])
-            hist = _samples(t[h0:i1 + m], rows) if self.options.history > 0 else None
+                h0 = min(i0 - m, int(np.searchsorted(t, t0 - self.options.history, side="left")))
+                hist = self._imu.samples(h0, i1 + m)
             self.clips += 1
-            out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images, imu, hist))
+            out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images,
+                               self._imu.samples(i0 - m, i1 + m), hist))
         return out
-
-
-def _samples(t: np.ndarray, rows: np.ndarray) -> ImuSamples:
-    ori = rows[:, 6:10]
-    return ImuSamples(t, rows[:, 0:3], rows[:, 3:6], None if np.isnan(ori).all() else ori)

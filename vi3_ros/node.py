@@ -1,8 +1,9 @@
 """``vi3_node``: the thin rclpy shell around ``vi3_ros.pipeline``.
 
 Only wiring lives here: parameters declared with descriptors from ``vi3_ros.params``, subscriptions with the
-sensor-data QoS (best effort), reliable publishers for ``vi3_ros.pipeline.OUTPUTS``, a diagnostics timer, and
-callbacks that convert messages with ``msg_adapters`` and hand them to the Pipeline (whose worker thread publishes).
+sensor-data QoS (best effort), reliable publishers for ``vi3_ros.pipeline.OUTPUTS``, a timer for the Pipeline's
+periodic diagnostics, and callbacks that hand messages to the Pipeline (images and IMU converted with
+``msg_adapters``; CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does).
 This is the only module that imports rclpy; it uses the API that ROS 2 Humble and Jazzy share.
 Run: ``ros2 run vi3_ros vi3_node --ros-args --params-file config/euroc.yaml`` or ``launch/vi3.launch.py``.
 """
@@ -17,11 +18,8 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
-from msg_adapters.camera_info import camera_info_to_calib
-from msg_adapters.diagnostics import diagnostic_array
 from msg_adapters.image import image_to_numpy
 from msg_adapters.imu import imu_to_sample
-from msg_adapters.poses import tf_message_to_list
 from msg_adapters.stamps import stamp_to_ns
 from msg_adapters.types import MessageTypes
 from vi3_core.errors import DataError
@@ -79,13 +77,12 @@ class Vi3Node(Node):
         if v["use_tf_static"]:
             self.create_subscription(types.get("tf2_msgs/msg/TFMessage"), "/tf_static", self._on_tf_static,
                                      TF_STATIC)
-        self._types = types
         self.create_timer(v["diagnostics_period"], self._on_timer)
         self.get_logger().info(f"vi3_node: backbone {v['backbone']} on {v['device']}, mode {v['mode']}, "
                                f"images {v['image_topic']}, IMU {v['imu_topic']}")
 
     def _guard(self, what: str, fn, *args) -> None:
-        """Malformed messages are logged and counted, never fatal."""
+        """A malformed message is dropped with a (throttled) warning, never fatal."""
         try:
             fn(*args)
         except DataError as exc:
@@ -97,23 +94,17 @@ class Vi3Node(Node):
     def _on_imu(self, msg) -> None:
         def add() -> None:
             s = imu_to_sample(msg)
-            self.pipeline.add_imu(s.t, s.gyro, s.accel, s.orientation)
+            self.pipeline.add_imu(s.t_ns, s.gyro, s.accel, s.orientation)
         self._guard("IMU", add)
 
     def _on_camera_info(self, msg) -> None:
-        self._guard("CameraInfo", lambda: self.pipeline.calibration.set_intrinsics(*camera_info_to_calib(msg)))
+        self._guard("CameraInfo", self.pipeline.add_camera_info, msg)
 
     def _on_tf_static(self, msg) -> None:
-        def add() -> None:
-            for T, parent, child, _ in tf_message_to_list(msg):
-                if parent.lstrip("/") == self.values["imu_frame"] and child.lstrip("/") == self.values["camera_frame"]:
-                    self.pipeline.calibration.set_extrinsics(T)
-        self._guard("/tf_static", add)
+        self._guard("/tf_static", self.pipeline.add_tf_static, msg)
 
     def _on_timer(self) -> None:
-        stamp = self.get_clock().now().nanoseconds
-        msg = diagnostic_array([self.pipeline.diagnostics_status()], stamp_ns=stamp, types=self._types)
-        self.sink.publish("diagnostics", msg, stamp)
+        self.pipeline.publish_diagnostics(self.get_clock().now().nanoseconds)
 
     def destroy_node(self) -> None:
         self.pipeline.close()

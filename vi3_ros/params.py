@@ -1,34 +1,49 @@
 """One declaration of every parameter of the node and the replay tool: name, default (whose Python type is the
 parameter's type), description, and range or choices.
 
+Parameters that set a field of an options dataclass (``ClipBufferOptions``, ``OnlineOptions``, ``InitOptions``,
+``AnchorOptions``) take their default from that field, and ``options(cls, values)`` builds the dataclass from
+parameter values, so the dataclass stays the one source of each default. Choices of ``backbone`` and ``mode`` are
+the backbone registry's and the anchoring modes.
+
 The node declares each as a ROS parameter with a ``ParameterDescriptor`` built from this table; replay fills the
-same values from ``--param NAME=VALUE`` and from a ROS 2 parameter YAML (``config/euroc.yaml``); ``docs/node.md``'s
-table is ``markdown_table()``'s output.
+same values from ``--param NAME=VALUE`` and from a ROS 2 parameter YAML (``config/euroc.yaml``); ``resolve`` is the
+one place where values are checked; ``docs/node.md``'s table is ``markdown_table()``'s output.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
+from vi3_core.anchor.options import MODES, AnchorOptions
+from vi3_core.backbones import BACKBONES
 from vi3_core.errors import DataError
+from vi3_core.init.options import InitOptions
+from vi3_core.online.options import OnlineOptions
+from vi3_ros.clip_buffer import ClipBufferOptions
 
 NODE_NAME = "vi3_node"
+Options = TypeVar("Options")
 
 
 @dataclass(frozen=True)
 class Param:
     """name: ROS parameter name; default: its value and type (bool, int, float, str); range: inclusive (lo, hi)
-    for numbers; choices: allowed strings."""
+    for numbers; choices: allowed strings; option: (options dataclass, field) that the value sets; none_as: the
+    parameter value that stands for the field's None (e.g. ``hop`` 0)."""
 
     name: str
     default: bool | int | float | str
     description: str
     range: tuple[float, float] | None = None
     choices: tuple[str, ...] = ()
+    option: tuple[type, str] | None = None
+    none_as: bool | int | float | str | None = None
 
     @property
     def type(self) -> type:
@@ -58,6 +73,14 @@ class Param:
         return value
 
 
+def _option(name: str, cls: type, field: str, description: str, *, range: tuple[float, float] | None = None,
+            none_as: bool | int | float | str | None = None) -> Param:
+    """The parameter that sets ``cls.field``; its default is the field's default (``none_as`` where that is None)."""
+    default = {f.name: f.default for f in dataclasses.fields(cls)}[field]
+    return Param(name, none_as if default is None else default, description, range=range, option=(cls, field),
+                 none_as=none_as)
+
+
 PARAMS: tuple[Param, ...] = (
     # inputs
     Param("image_topic", "/cam0/image_raw", "camera images (sensor_msgs/Image, mono8/rgb8/bgr8...)"),
@@ -82,47 +105,64 @@ PARAMS: tuple[Param, ...] = (
     Param("outputs_in_odom", False, "express ~/poses and ~/points in odom_frame instead of clip_frame (online only; "
           "a clip that is not chained keeps clip_frame)"),
     Param("path_max_poses", 5000, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
-    Param("online_max_gap", 1.0, "s; a longer gap between clips resets the online state (GT-free initialisation)",
-          range=(0.01, 3600.0)),
-    Param("online_gravity_tol", 30.0, "deg; the gravity prior is dropped for a clip when it is farther than this from "
-          "the clip's own estimate (or fits the positions clearly worse, see online_residual_ratio)",
-          range=(0.1, 180.0)),
-    Param("online_residual_ratio", 4.0, "a prior (gravity, velocity) is dropped when the position residual with it "
-          "exceeds this times the residual without it (and online_residual_floor)", range=(1.0, 1000.0)),
-    Param("online_residual_floor", 0.03, "m; position residual always tolerated for a prior",
-          range=(0.0, 100.0)),
-    Param("online_scale_ratio", 2.0, "the velocity prior is dropped when the scale it implies differs from the "
-          "clip's free position fit by more than this factor", range=(1.01, 100.0)),
-    Param("online_bg_gain", 0.2, "weight of each clip's own gyro-bias estimate in the filtered bias",
-          range=(0.0, 1.0)),
-    Param("online_gravity_gain", 0.1, "weight of each clip's own gravity estimate when it refines the gravity prior",
-          range=(0.0, 1.0)),
-    Param("online_velocity_weight", 0.05, "s; weight of the velocity prior against the positions in the scale fit",
-          range=(0.0, 1000.0)),
+    _option("online_window", OnlineOptions, "window_s", "s; clips of this long are fitted jointly (gravity, "
+            "velocities, accelerometer bias shared through the IMU; one scale per clip)", range=(0.5, 60.0)),
+    _option("online_max_gap", OnlineOptions, "max_gap_s", "s; a longer gap between clips restarts the window "
+            "(GT-free initialisation)", range=(0.01, 3600.0)),
+    _option("online_velocity_link", OnlineOptions, "velocity_link_s", "weight (m per m/s) of the IMU tie between "
+            "consecutive clips' velocities in the window", range=(0.0001, 1000.0)),
+    _option("online_ba_weight", OnlineOptions, "ba_weight", "weight (m per m/s^2) of the zero-accelerometer-bias "
+            "prior of the window", range=(0.0001, 1000.0)),
+    _option("online_residual_ratio", OnlineOptions, "residual_ratio", "a clip is inconsistent with the window when "
+            "a clip's position residual exceeds this times the last window's median (and online_residual_floor)",
+            range=(1.0, 1000.0)),
+    _option("online_residual_floor", OnlineOptions, "residual_floor_m", "m; position residual always tolerated in "
+            "the window", range=(0.0001, 100.0)),
+    _option("online_max_rejects", OnlineOptions, "max_rejects", "inconsistent clips in a row that restart the "
+            "window", range=(1, 1000)),
+    _option("online_gravity_tol", OnlineOptions, "gravity_tol_deg", "deg; the odom gravity prior is dropped for a "
+            "clip when it is farther than this from the window's estimate", range=(0.01, 180.0)),
+    _option("online_velocity_tol", OnlineOptions, "velocity_tol_mps", "m/s; the odom velocity prior is dropped "
+            "for a clip when it is farther than this from the window's estimate", range=(0.001, 100.0)),
+    _option("online_gravity_weight", OnlineOptions, "gravity_weight_s2", "weight (m per m/s^2) of an accepted "
+            "gravity prior", range=(0.0, 1000.0)),
+    _option("online_velocity_weight", OnlineOptions, "v1_weight_s", "weight (m per m/s) of an accepted velocity "
+            "prior", range=(0.0, 1000.0)),
+    _option("online_max_scale_sigma", OnlineOptions, "max_scale_rel_sigma", "a clip whose scale has a larger "
+            "relative 1-sigma over the window is reported unobservable", range=(0.0001, 10.0)),
+    _option("online_bg_window", OnlineOptions, "bg_window_s", "s; the gyro bias is the median of the clips' own "
+            "estimates over this long", range=(0.1, 3600.0)),
+    _option("online_imu_keep", OnlineOptions, "imu_keep_s", "s of IMU kept for the window and the bridges "
+            "(> online_window + online_max_gap)", range=(1.0, 3600.0)),
     # clip buffer
-    Param("clip_length", 8, "frames per clip (n)", range=(2, 64)),
-    Param("stride", 2, "use every stride-th input frame", range=(1, 100)),
-    Param("hop", 0, "input frames between clip starts; 0: clip_length * stride (non-overlapping)", range=(0, 10000)),
-    Param("max_frame_gap", 0.0, "s; a larger gap between consecutive frames restarts the clip; 0: automatic "
-          "(1.5 x the median recent frame interval, so one dropped frame restarts)", range=(0.0, 60.0)),
-    Param("time_offset", 0.0, "s; camera-IMU time offset, t_imu = t_cam + time_offset (Kalibr timeshift_cam_imu)",
-          range=(-1.0, 1.0)),
-    Param("imu_buffer", 4000, "IMU samples kept (bounded buffer)", range=(16, 1_000_000)),
-    Param("imu_timeout", 0.5, "s of camera time a complete clip waits for IMU before it is dropped (imu_stalled)",
-          range=(0.001, 60.0)),
-    Param("imu_history", 0.0, "s of IMU before the clip kept for the long-window gravity seed; 0: none",
-          range=(0.0, 60.0)),
-    Param("max_pending", 4, "complete clips waiting for IMU before the oldest is dropped", range=(1, 1000)),
+    _option("clip_length", ClipBufferOptions, "n", "frames per clip (n)", range=(2, 64)),
+    _option("stride", ClipBufferOptions, "stride", "use every stride-th input frame", range=(1, 100)),
+    _option("hop", ClipBufferOptions, "hop", "input frames between clip starts; 0: clip_length * stride "
+            "(non-overlapping)", range=(0, 10000), none_as=0),
+    _option("max_frame_gap", ClipBufferOptions, "max_frame_gap", "s; a larger gap between consecutive frames "
+            "restarts the clip; 0: automatic (1.5 x the median recent frame interval, so one dropped frame restarts)",
+            range=(0.0, 60.0)),
+    _option("time_offset", ClipBufferOptions, "time_offset", "s; camera-IMU time offset, t_imu = t_cam + "
+            "time_offset (Kalibr timeshift_cam_imu)", range=(-1.0, 1.0)),
+    _option("imu_buffer", ClipBufferOptions, "imu_capacity", "IMU samples kept (bounded buffer)",
+            range=(16, 1_000_000)),
+    _option("imu_timeout", ClipBufferOptions, "imu_timeout", "s of camera time a complete clip waits for IMU before "
+            "it is dropped (imu_stalled)", range=(0.001, 60.0)),
+    _option("imu_history", ClipBufferOptions, "history", "s of IMU before the clip kept for the long-window gravity "
+            "seed; 0: none", range=(0.0, 60.0)),
+    _option("max_pending", ClipBufferOptions, "max_pending", "complete clips waiting for IMU before the oldest is "
+            "dropped", range=(1, 1000)),
     # model and anchoring
-    Param("backbone", "classical", "3D foundation model", choices=("classical", "vggt", "vggt_omega", "pi3", "pi3x",
-                                                                    "da3")),
+    Param("backbone", "classical", "3D foundation model", choices=tuple(BACKBONES)),
     Param("device", "cpu", "torch device of the backbone (cpu, cuda, cuda:1...)"),
     Param("checkpoint", "", "local checkpoint path or Hugging Face id; empty: the backbone's default"),
     Param("mode", "init", "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
-          "(test-time refinement)", choices=("init", "cond", "ttr")),
-    Param("ttr_steps", 160, "TTR optimisation steps", range=(1, 100000)),
-    Param("min_accel_rms", 0.15, "m/s^2; below it scale is unobservable and the clip is flagged", range=(0.0, 100.0)),
-    Param("max_imu_gap", 0.05, "s; a larger gap between IMU samples inside a clip rejects it", range=(0.0, 10.0)),
+          "(test-time refinement)", choices=MODES),
+    _option("ttr_steps", AnchorOptions, "steps", "TTR optimisation steps", range=(1, 100000)),
+    _option("min_accel_rms", InitOptions, "min_accel_rms", "m/s^2; below it scale is unobservable and the clip is "
+            "flagged", range=(0.0, 100.0)),
+    _option("max_imu_gap", InitOptions, "max_imu_gap_s", "s; a larger gap between IMU samples inside a clip rejects "
+            "it", range=(0.0, 10.0)),
     # outputs
     Param("depth_frames", "last", "~/depth for every clip frame (all) or only the last", choices=("last", "all")),
     Param("points_frames", "last", "~/points from every clip frame (all) or only the last", choices=("last", "all")),
@@ -130,7 +170,8 @@ PARAMS: tuple[Param, ...] = (
     Param("points_conf_quantile", 0.3, "~/points drops pixels whose confidence is below this quantile of the "
           "clip's confidences (backbone-independent; 0 keeps all)", range=(0.0, 0.99)),
     Param("points_max_depth", 20.0, "m; ~/points drops pixels farther than this", range=(0.1, 1000.0)),
-    Param("diagnostics_period", 1.0, "s between /diagnostics summaries (node only)", range=(0.05, 3600.0)),
+    Param("diagnostics_period", 1.0, "s between /diagnostics summaries, which carry the dropped input messages "
+          "counted by reason (node: timer; replay: bag time)", range=(0.05, 3600.0)),
 )
 
 BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
@@ -142,7 +183,7 @@ def defaults() -> dict[str, Any]:
 
 
 def resolve(overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Defaults updated with checked ``overrides``; an unknown name is a DataError naming it."""
+    """Defaults updated with ``overrides``, each checked (``Param.check``); an unknown name is a DataError naming it."""
     values = defaults()
     for name, value in (overrides or {}).items():
         if name not in BY_NAME:
@@ -151,8 +192,17 @@ def resolve(overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     return values
 
 
+def options(cls: type[Options], values: dict[str, Any], **fixed: Any) -> Options:
+    """The options dataclass ``cls`` with every field a parameter sets taken from ``values`` (``resolve``'s output)
+    and the fields in ``fixed``; other fields keep their defaults."""
+    fields = {p.option[1]: None if p.none_as is not None and values[p.name] == p.none_as else values[p.name]
+              for p in PARAMS if p.option is not None and p.option[0] is cls}
+    return cls(**fields, **fixed)
+
+
 def load_yaml(path: str | Path, *, node: str = NODE_NAME) -> dict[str, Any]:
-    """The ``ros__parameters`` of ``node`` (or of ``/**``) in a ROS 2 parameter file, checked."""
+    """The ``ros__parameters`` of ``node`` (or of ``/**``) in a ROS 2 parameter file, as written (names checked;
+    ``resolve`` checks the values)."""
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
@@ -161,21 +211,20 @@ def load_yaml(path: str | Path, *, node: str = NODE_NAME) -> dict[str, Any]:
     for key in (node, f"/{node}", "/**"):
         section = (doc or {}).get(key) if isinstance(doc, dict) else None
         if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
-            return {k: BY_NAME[k].check(v) if k in BY_NAME else _unknown(path, k)
-                    for k, v in section["ros__parameters"].items()}
+            params = section["ros__parameters"]
+            unknown = [k for k in params if k not in BY_NAME]
+            if unknown:
+                raise DataError(f"{path}: unknown parameter {unknown[0]!r}")
+            return dict(params)
     raise DataError(f"{path}: no '{node}: ros__parameters:' (or '/**') section")
 
 
-def _unknown(path: Path, name: str):
-    raise DataError(f"{path}: unknown parameter {name!r}")
-
-
-def parse_assignment(text: str) -> tuple[str, Any]:
-    """``"NAME=VALUE"`` (from the command line) -> (name, checked value)."""
+def parse_assignment(text: str) -> tuple[str, str]:
+    """``"NAME=VALUE"`` (from the command line) -> (name, value text); ``resolve`` checks and converts the value."""
     name, sep, value = text.partition("=")
     if not sep or name not in BY_NAME:
         raise DataError(f"--param {text!r}: expected NAME=VALUE with NAME one of {', '.join(BY_NAME)}")
-    return name, BY_NAME[name].check(value)
+    return name, value
 
 
 def markdown_table() -> str:

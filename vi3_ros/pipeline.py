@@ -9,6 +9,10 @@ Which result a message carries: ``~/poses``, ``~/depth`` and ``~/points`` carry 
 is published first on ``~/init/poses``, ``~/init/depth`` and ``~/init/points``. Every result is described on
 ``~/status`` (key ``result``: init | cond | ttr | none | skipped).
 
+Dropped input messages (``ClipBuffer`` drops) are counted by reason, exactly, and reported on ``/diagnostics`` by
+``publish_diagnostics`` once per ``diagnostics_period`` (the node's timer; replay in bag time) and in the next clip's
+status; only the first drop of a reason not seen in the current or the previous period is published at once.
+
 Frames (see docs/node.md): poses and points are in ``clip_frame``, the clip's first camera (OpenCV optical axes,
 metric), or in ``odom_frame`` with ``outputs_in_odom``; depth images in ``camera_frame``; TF ``camera_frame ->
 clip_frame`` at the clip's last frame stamp.
@@ -21,6 +25,7 @@ base_frame`` (``publish_odom_tf``); the status names the priors used, dropped (w
 from __future__ import annotations
 
 import collections
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -29,10 +34,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from msg_adapters.camera_info import camera_info_to_calib
 from msg_adapters.diagnostics import DiagStatus, Level, diagnostic_array
 from msg_adapters.image import depth_to_image
 from msg_adapters.pointcloud import point_cloud2
-from msg_adapters.poses import odometry, path, pose_array, tf_message
+from msg_adapters.poses import odometry, path, pose_array, tf_message, tf_message_to_list
 from msg_adapters.types import MessageTypes
 from vi3_core.anchor import AnchorOptions, anchor, check_mode
 from vi3_core.backbones import make_backbone
@@ -44,6 +50,7 @@ from vi3_core.init.options import InitOptions
 from vi3_core.online import ChainedClip, OnlineEstimator, OnlineOptions
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
+from vi3_ros.params import options
 from vi3_ros.worker import Worker
 
 
@@ -82,20 +89,8 @@ class OutputSink(Protocol):
 def buffer_options(values: dict[str, Any]) -> ClipBufferOptions:
     """ClipBufferOptions from parameter values (see vi3_ros.params). With ``online``, the IMU history covers the
     bridge from the previous clip (up to ``online_max_gap``)."""
-    history = max(values["imu_history"], values["online_max_gap"]) if values["online"] else values["imu_history"]
-    return ClipBufferOptions(n=values["clip_length"], stride=values["stride"], hop=values["hop"] or None,
-                             max_frame_gap=values["max_frame_gap"], time_offset=values["time_offset"],
-                             imu_capacity=values["imu_buffer"], imu_timeout=values["imu_timeout"],
-                             history=history, max_pending=values["max_pending"])
-
-
-def online_options(values: dict[str, Any]) -> OnlineOptions:
-    """OnlineOptions from parameter values (see vi3_ros.params)."""
-    return OnlineOptions(max_gap_s=values["online_max_gap"], bg_gain=values["online_bg_gain"],
-                         gravity_gain=values["online_gravity_gain"], gravity_tol_deg=values["online_gravity_tol"],
-                         residual_ratio=values["online_residual_ratio"],
-                         residual_floor_m=values["online_residual_floor"], scale_ratio=values["online_scale_ratio"],
-                         v1_weight_s=values["online_velocity_weight"])
+    opts = options(ClipBufferOptions, values)
+    return dataclasses.replace(opts, history=max(opts.history, values["online_max_gap"])) if values["online"] else opts
 
 
 def calib_from_camera_info(K: np.ndarray, dist_model: str, dist: np.ndarray, size: tuple[int, int],
@@ -212,14 +207,18 @@ class Pipeline:
         self.sink = sink
         self.types = types
         self.buffer = ClipBuffer(buffer_options(values))
-        self._anchor_options = AnchorOptions(steps=values["ttr_steps"])
-        self._init_options = InitOptions(min_accel_rms=values["min_accel_rms"], max_imu_gap_s=values["max_imu_gap"])
+        self._anchor_options = options(AnchorOptions, values)
+        self._init_options = options(InitOptions, values)
         self._on_report = on_report
-        self.online = OnlineEstimator(options=online_options(values), init_options=self._init_options) \
+        self.online = OnlineEstimator(options=options(OnlineOptions, values), init_options=self._init_options) \
             if values["online"] else None
         self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
         self._lock = threading.Lock()  # guards the buffer and counters (executor thread vs worker thread)
+        # Dropped input messages by reason: since the last clip status, in this diagnostics period, and the reasons
+        # of the previous period (a reason in neither is news, published at once).
         self._input_drops: collections.Counter[str] = collections.Counter()
+        self._period_drops: collections.Counter[str] = collections.Counter()
+        self._previous_reasons: frozenset[str] = frozenset()
         self.outcomes: collections.Counter[str] = collections.Counter()
         self.worker = Worker(self._process, on_error=self._on_error, on_replaced=self._on_replaced,
                              synchronous=synchronous)
@@ -232,11 +231,25 @@ class Pipeline:
             events = self.buffer.add_image(stamp_ns, image)
         self._dispatch(events)
 
-    def add_imu(self, t: float, gyro, accel, orientation=None) -> None:
-        """An IMU sample: t s, gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw or None."""
+    def add_imu(self, stamp_ns: int, gyro, accel, orientation=None) -> None:
+        """An IMU sample: message stamp (IMU time, ns), gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw or
+        None."""
         with self._lock:
-            events = self.buffer.add_imu(t, gyro, accel, orientation)
+            events = self.buffer.add_imu(stamp_ns, gyro, accel, orientation)
         self._dispatch(events)
+
+    def add_camera_info(self, msg: Any) -> None:
+        """A ``sensor_msgs/CameraInfo`` (rclpy or rosbags): its intrinsics and distortion become the calibration's.
+        Raises DataError for a malformed message, CalibrationError for intrinsics it cannot use."""
+        self.calibration.set_intrinsics(*camera_info_to_calib(msg))
+
+    def add_tf_static(self, msg: Any) -> None:
+        """A ``tf2_msgs/TFMessage`` from /tf_static: its ``imu_frame -> camera_frame`` transform (frame names
+        compared without a leading "/") becomes T_BC; other transforms are ignored. Raises DataError when malformed."""
+        imu, camera = self.values["imu_frame"], self.values["camera_frame"]
+        for T, parent, child, _ in tf_message_to_list(msg):
+            if parent.lstrip("/") == imu and child.lstrip("/") == camera:
+                self.calibration.set_extrinsics(T)
 
     def close(self) -> None:
         self.worker.wait_idle(None if self.worker.synchronous else 60.0)
@@ -247,12 +260,18 @@ class Pipeline:
             if isinstance(ev, RawClip):
                 self.worker.submit(ev)
             elif ev.clip >= 0:
-                self._report_skip(ev.clip, ev.reason, ev.detail, int(round((ev.t - self.values["time_offset"]) * 1e9)))
-            else:
-                with self._lock:
-                    self._input_drops[ev.reason] += 1
-                self._publish_diagnostics(Level.WARN, f"{ev.reason}: {ev.detail}",
-                                          int(round((ev.t - self.values["time_offset"]) * 1e9)))
+                self._report_skip(ev.clip, ev.reason, ev.detail, ev.stamp_ns)
+            elif self._count_input_drop(ev.reason):
+                self._publish_diagnostics(Level.WARN, f"{ev.reason}: {ev.detail}", ev.stamp_ns)
+
+    def _count_input_drop(self, reason: str) -> bool:
+        """Count one dropped input message; True when its reason is news (not seen in this or the previous
+        diagnostics period), which is published at once. Every other drop waits for ``publish_diagnostics``."""
+        with self._lock:
+            news = reason not in self._period_drops and reason not in self._previous_reasons
+            self._input_drops[reason] += 1
+            self._period_drops[reason] += 1
+        return news
 
     # ---- worker side ----------------------------------------------------------------------------------------
 
@@ -348,8 +367,9 @@ class Pipeline:
             self.sink.publish("tf", tf_message([(T, v["odom_frame"], v["base_frame"], stamp)], types=types), stamp)
 
     def _take_input_drops(self) -> str:
+        """The input drops since the previous clip status (``reason:count, ...``), and a fresh count."""
         with self._lock:
-            text = ", ".join(f"{k}:{n}" for k, n in sorted(self._input_drops.items()))
+            text = _counts_text(self._input_drops)
             self._input_drops.clear()
         return text
 
@@ -405,6 +425,18 @@ class Pipeline:
             values.update({f"drop_{k}": n for k, n in sorted(self.buffer.counts.items())})
         return DiagStatus(level, DIAG_NAME, message, self.values["clip_frame"], values)
 
+    def publish_diagnostics(self, stamp_ns: int) -> None:
+        """The periodic /diagnostics summary (every ``diagnostics_period``: the node's timer, replay in bag time),
+        stamped ``stamp_ns``: WARN naming the input drops of the period by reason with their exact counts, else OK
+        "running". Starts the next period."""
+        with self._lock:
+            drops, self._period_drops = self._period_drops, collections.Counter()
+            self._previous_reasons = frozenset(drops)
+        if drops:
+            self._publish_diagnostics(Level.WARN, f"input drops in the last period: {_counts_text(drops)}", stamp_ns)
+        else:
+            self._publish_diagnostics(Level.OK, "running", stamp_ns)
+
     def _publish_diagnostics(self, level: Level, message: str, stamp_ns: int) -> None:
         msg = diagnostic_array([self.diagnostics_status(level, message)], stamp_ns=stamp_ns, types=self.types)
         self.sink.publish("diagnostics", msg, stamp_ns)
@@ -418,6 +450,11 @@ def make_pipeline(values: dict[str, Any], *, sink: OutputSink, types: MessageTyp
     calibration = Calibration(load_calib(values["calib_file"]) if values["calib_file"] else None)
     return Pipeline(values, backbone=backbone, calibration=calibration, sink=sink, types=types,
                     synchronous=synchronous, on_report=on_report)
+
+
+def _counts_text(counts: collections.Counter[str]) -> str:
+    """``reason:count, ...`` sorted by reason ("" when empty)."""
+    return ", ".join(f"{k}:{n}" for k, n in sorted(counts.items()))
 
 
 def _vec(v: np.ndarray) -> str:

@@ -2,39 +2,34 @@
 time and write what the node would publish into a rosbag2 MCAP.
 
 Deterministic: the worker runs synchronously, so every clip is processed, and output log times are the header
-stamps (camera time) rather than wall-clock times. Input: anything ``vi3_ros.io.reader.iter_events`` accepts (ASL
-folder, ROS 1 bag, rosbag2 directory or ``.mcap``); rosbag inputs may also carry ``sensor_msgs/CameraInfo`` on
-``camera_info_topic`` and ``/tf_static``, which are fed to the calibration exactly as the node does.
+stamps (camera time) rather than wall-clock times; the node's diagnostics timer runs in bag time. Input: anything
+``vi3_ros.io.reader.iter_events`` accepts (ASL folder, ``vi3 make-bag`` folder, ROS 1 bag, rosbag2 directory or
+``.mcap``), read once; bags may also carry ``sensor_msgs/CameraInfo`` on ``camera_info_topic`` and ``/tf_static``
+(with ``use_tf_static``), which come in the same stream and go to the Pipeline exactly as the node's callbacks do.
 Output: ``OUT.mcap`` (a single MCAP file) or, for any other name, a rosbag2 directory (``metadata.yaml`` + MCAP).
 """
 
 from __future__ import annotations
 
-import heapq
 import shutil
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from tqdm import tqdm
 
-from msg_adapters.camera_info import camera_info_to_calib
 from msg_adapters.image import numpy_to_image
 from msg_adapters.imu import samples_to_imus
-from msg_adapters.poses import tf_message_to_list
 from msg_adapters.types import MessageTypes, jazzy_types
 from vi3_core.dataset.asl import find_mav0
 from vi3_core.errors import DataError
 from vi3_core.types import ImuSamples
-from vi3_ros.io.reader import ImageEvent, ImuEvent, find_calib, iter_events
-from vi3_ros.io.reader import _resolve as resolve_input
+from vi3_ros.io.reader import CameraInfoEvent, Event, ImageEvent, ImuEvent, find_calib, iter_events, resolve_input
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import OUTPUTS, ClipReport, Pipeline, make_pipeline
 
@@ -129,56 +124,50 @@ def input_calib(path: Path) -> Path | None:
     return find_calib(source)
 
 
-def _calibration_events(path: Path, values: dict[str, Any]) -> list[tuple[int, str, Any]]:
-    """(log time ns, "camera_info" | "tf_static", message) from a rosbag input, when the parameters ask for them."""
-    topics = {values["camera_info_topic"]: "camera_info"} if values["camera_info_topic"] else {}
-    if values["use_tf_static"]:
-        topics["/tf_static"] = "tf_static"
-    if not topics or not (path.suffix in (".bag", ".mcap", ".db3") or (path / "metadata.yaml").is_file()):
-        return []
-    with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
-        conns = [c for c in reader.connections if c.topic in topics]
-        return [(t, topics[c.topic], reader.deserialize(raw, c.msgtype))
-                for c, t, raw in reader.messages(connections=conns)]
+@dataclass
+class _BagTimer:
+    """The node's diagnostics timer in bag time: ``due(t_ns)`` is True once per ``period_ns`` of input stamps (ns),
+    the first time one period after the first stamp."""
+
+    period_ns: int
+    next_ns: int | None = None
+
+    def due(self, t_ns: int) -> bool:
+        if self.next_ns is None:
+            self.next_ns = t_ns + self.period_ns
+        if t_ns < self.next_ns:
+            return False
+        self.next_ns += ((t_ns - self.next_ns) // self.period_ns + 1) * self.period_ns
+        return True
 
 
-def _events(path: Path, values: dict[str, Any]) -> Iterator[tuple[int, str, Any]]:
-    """Image, IMU and calibration events of the input, merged by time (calibration first on ties)."""
-    def sensor() -> Iterator[tuple[int, str, Any]]:
-        for ev in iter_events(path, image_topic=values["image_topic"], imu_topic=values["imu_topic"]):
-            yield (ev.t_ns, "image" if isinstance(ev, ImageEvent) else "imu", ev)
-
-    return heapq.merge(_calibration_events(path, values), sensor(), key=lambda e: (e[0], e[1] != "camera_info"
-                                                                                     and e[1] != "tf_static"))
-
-
-def _feed(pipeline: Pipeline, kind: str, payload: Any, values: dict[str, Any]) -> None:
-    if kind == "image":
-        pipeline.add_image(payload.t_ns, payload.image)
-    elif kind == "imu":
-        pipeline.add_imu(payload.t, payload.gyro, payload.accel, payload.orientation)
-    elif kind == "camera_info":
-        pipeline.calibration.set_intrinsics(*camera_info_to_calib(payload))
+def _feed(pipeline: Pipeline, event: Event) -> None:
+    """Hand one input event to the pipeline, as the node's callback for its topic does."""
+    if isinstance(event, ImageEvent):
+        pipeline.add_image(event.t_ns, event.image)
+    elif isinstance(event, ImuEvent):
+        pipeline.add_imu(event.t_ns, event.gyro, event.accel, event.orientation)
+    elif isinstance(event, CameraInfoEvent):
+        pipeline.add_camera_info(event.msg)
     else:
-        for T, parent, child, _ in tf_message_to_list(payload):
-            if parent.lstrip("/") == values["imu_frame"] and child.lstrip("/") == values["camera_frame"]:
-                pipeline.calibration.set_extrinsics(T)
+        pipeline.add_tf_static(event.msg)
 
 
-def _copy_input(sink: McapSink, kind: str, payload: ImageEvent | ImuEvent, values: dict[str, Any]) -> None:
-    """The input image / IMU sample as a Jazzy message on its input topic (so the output bag is self-contained)."""
+def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, values: dict[str, Any]) -> None:
+    """The input image / IMU sample as a Jazzy message on its input topic with its exact stamp (so the output bag
+    is self-contained)."""
     types = sink.types
-    if kind == "image":
-        img = payload.image
+    if isinstance(event, ImageEvent):
+        img = event.image
         enc = "mono8" if img.ndim == 2 else "rgb8"
-        msg = numpy_to_image(img, encoding=enc, stamp_ns=payload.t_ns, frame_id=values["camera_frame"], types=types)
-        sink.write(values["image_topic"], "sensor_msgs/msg/Image", msg, payload.t_ns)
+        msg = numpy_to_image(img, encoding=enc, stamp_ns=event.t_ns, frame_id=values["camera_frame"], types=types)
+        sink.write(values["image_topic"], "sensor_msgs/msg/Image", msg, event.t_ns)
     else:
-        ori = None if payload.orientation is None else np.asarray(payload.orientation, np.float64)[None]
-        (msg,) = samples_to_imus(ImuSamples(np.array([payload.t]), np.asarray(payload.gyro)[None],
-                                            np.asarray(payload.accel)[None], ori),
-                                 frame_id=values["imu_frame"], types=types)
-        sink.write(values["imu_topic"], "sensor_msgs/msg/Imu", msg, payload.t_ns)
+        ori = None if event.orientation is None else np.asarray(event.orientation, np.float64)[None]
+        (msg,) = samples_to_imus(ImuSamples(np.array([event.t]), np.asarray(event.gyro)[None],
+                                            np.asarray(event.accel)[None], ori),
+                                 frame_id=values["imu_frame"], types=types, stamps_ns=[event.t_ns])
+        sink.write(values["imu_topic"], "sensor_msgs/msg/Imu", msg, event.t_ns)
 
 
 def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any], copy_inputs: bool = False,
@@ -195,19 +184,26 @@ def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any]
     summary = ReplaySummary()
     sink = McapSink(output, types=types)
     t_first = t_last = None
+    timer = _BagTimer(round(values["diagnostics_period"] * 1e9))
     try:
         pipeline = make_pipeline(values, sink=sink, types=types, synchronous=True, on_report=summary.reports.append)
         start = time.perf_counter()  # model loading is not part of the replay's speed
+        events = iter_events(input_path, image_topic=values["image_topic"], imu_topic=values["imu_topic"],
+                             camera_info_topic=values["camera_info_topic"], tf_static=values["use_tf_static"])
         with tqdm(desc=f"replay {input_path.name}", unit=" frames", disable=not progress, leave=False) as bar:
-            for t_ns, kind, payload in _events(input_path, values):
-                t_first = t_ns if t_first is None else t_first
-                t_last = t_ns
-                if copy_inputs and kind in ("image", "imu"):
-                    _copy_input(sink, kind, payload, values)
-                _feed(pipeline, kind, payload, values)
-                if kind == "image":
-                    bar.update(1)
+            for event in events:
+                if isinstance(event, ImageEvent | ImuEvent):
+                    t_first = event.t_ns if t_first is None else t_first
+                    t_last = event.t_ns
+                    if copy_inputs:
+                        _copy_input(sink, event, values)
+                _feed(pipeline, event)
+                if t_last is not None and timer.due(t_last):
+                    pipeline.publish_diagnostics(t_last)
+                bar.update(isinstance(event, ImageEvent))
         pipeline.close()
+        if t_last is not None:  # the final counts
+            pipeline.publish_diagnostics(t_last)
     finally:
         sink.close()
     summary.wall_s = time.perf_counter() - start

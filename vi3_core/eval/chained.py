@@ -3,7 +3,9 @@
 Gravity fixes roll and pitch of odom, so only the yaw and the position of the first pose are aligned (4 DoF, no
 scale): ATE is the RMS position error after that alignment, drift the final position error per metre travelled
 (ground-truth path length), and the gravity error the mean angle between the up axis of odom and the true one,
-both seen from the body.
+both seen from the body. The per-clip scale errors |Scale (Traj.) - 1| of the chained run and of the same clips'
+own GT-free initialisation (what the paper's per-clip pipeline outputs, computed in the same run) are compared by
+their medians after the first ``SCALE_SKIP_CLIPS`` clips, while the window fills.
 """
 
 from __future__ import annotations
@@ -16,11 +18,15 @@ import numpy as np
 from vi3_core import so3
 from vi3_core.errors import DataError
 
+SCALE_SKIP_CLIPS = 3
+
 
 @dataclass(frozen=True)
 class ChainedMetrics:
     """ate_m: m; drift_pct: % of distance_m (GT path length, m); gravity_err_deg: deg; resets: state resets
-    after the first clip; frames: poses compared."""
+    after the first clip; frames: poses compared; scale_err_median: median |Scale (Traj.) - 1| of the chained
+    clips after the first SCALE_SKIP_CLIPS; independent_scale_err_median: the same for the clips' own GT-free
+    initialisation (NaN where no clip has a value)."""
 
     ate_m: float
     drift_pct: float
@@ -28,6 +34,8 @@ class ChainedMetrics:
     resets: int
     distance_m: float
     frames: int
+    scale_err_median: float = float("nan")
+    independent_scale_err_median: float = float("nan")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -42,8 +50,17 @@ def align_yaw_first(T_OB: np.ndarray, T_WB: np.ndarray) -> np.ndarray:
     return (T_OB[:, :3, 3] - T_OB[0, :3, 3]) @ Rz.T + T_WB[0, :3, 3]
 
 
-def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int) -> ChainedMetrics:
-    """T_OB, T_WB: [N,4,4] estimated (odom) and GT (world, z up) body poses at the same stamps, N >= 2."""
+def median_after_skip(errors: np.ndarray) -> float:
+    """Median of the finite values of per-clip errors [n] after the first SCALE_SKIP_CLIPS (NaN if none)."""
+    tail = np.asarray(errors, dtype=np.float64)[SCALE_SKIP_CLIPS:]
+    tail = tail[np.isfinite(tail)]
+    return float(np.median(tail)) if tail.size else float("nan")
+
+
+def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int, scale_err: np.ndarray | None = None,
+                    independent_scale_err: np.ndarray | None = None) -> ChainedMetrics:
+    """T_OB, T_WB: [N,4,4] estimated (odom) and GT (world, z up) body poses at the same stamps, N >= 2;
+    scale_err, independent_scale_err: [n_clips] per-clip |Scale (Traj.) - 1| (NaN: no value), in clip order."""
     if len(T_OB) != len(T_WB) or len(T_OB) < 2:
         raise DataError(f"chained metrics need >= 2 matching poses, got {len(T_OB)} estimated and {len(T_WB)} GT")
     p = align_yaw_first(T_OB, T_WB)
@@ -55,4 +72,7 @@ def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int) -> Chain
     return ChainedMetrics(ate_m=float(np.sqrt((err**2).mean())),
                           drift_pct=float(100.0 * err[-1] / distance) if distance > 0 else float("nan"),
                           gravity_err_deg=float(np.mean(grav)), resets=int(resets), distance_m=distance,
-                          frames=len(T_OB))
+                          frames=len(T_OB), scale_err_median=median_after_skip(
+                              np.zeros(0) if scale_err is None else scale_err),
+                          independent_scale_err_median=median_after_skip(
+                              np.zeros(0) if independent_scale_err is None else independent_scale_err))

@@ -8,6 +8,7 @@ rejected or unobservable init has no metric output; it is counted in ``status_co
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections import Counter
@@ -15,6 +16,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from vi3_core.eval.chained import SCALE_SKIP_CLIPS, ChainedMetrics
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.types import InitStatus
 
@@ -70,6 +72,8 @@ def to_json(summary: dict) -> str:
 def _fmt(value: float | None, key: str) -> str:
     if value is None:
         return "--"
+    if key.endswith("err_median"):
+        return f"{value:.4f}"
     return f"{value:.2f}" if key.startswith("scale") or key.endswith("ratio") else f"{value:.3f}"
 
 
@@ -105,17 +109,49 @@ def format_ablation(summaries: dict[str, dict]) -> str:
 
 
 def chained_summary(run) -> dict:
-    """The ``chained`` JSON object of a ``runner.OnlineRun``: ``ate_m``, ``drift_pct``, ``gravity_err_deg``,
-    ``resets`` (None when fewer than 2 poses were chained), ``distance_m``, ``frames`` and the per-clip
-    ``decisions`` (priors used, rejected with reasons, resets)."""
+    """The ``chained`` JSON object of a ``runner.OnlineRun``: the ``ChainedMetrics`` fields (``ate_m``,
+    ``drift_pct``, ``gravity_err_deg``, ``resets``, ``scale_err_median``, ``independent_scale_err_median``, ...;
+    None when fewer than 2 poses were chained or without a value) and the per-clip ``decisions`` (window, priors
+    used, rejected with reasons, resets)."""
     m = run.metrics.as_dict() if run.metrics is not None else dict.fromkeys(
-        ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m", "frames"))
+        f.name for f in dataclasses.fields(ChainedMetrics))
     m = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.items()}
     return {**m, "decisions": list(run.decisions)}
 
 
+def pool_chained(runs: Sequence) -> dict:
+    """The chained metrics of several sequences' ``runner.OnlineRun``s: the per-clip scale errors pooled
+    (``scale_err_median``, ``independent_scale_err_median``: medians over every sequence's clips after its first
+    ``SCALE_SKIP_CLIPS``), the worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg`` and the total ``resets``."""
+    worst = {key: _finite_max(getattr(r.metrics, key) for r in runs if r.metrics is not None)
+             for key in ("ate_m", "drift_pct", "gravity_err_deg")}
+    tails = [(r.scale_err[SCALE_SKIP_CLIPS:], r.independent_scale_err[SCALE_SKIP_CLIPS:]) for r in runs]
+    return {
+        "sequences": len(runs),
+        "scale_err_median": _median(v for t, _ in tails for v in t),
+        "independent_scale_err_median": _median(v for _, t in tails for v in t),
+        **{f"{key}_max": value for key, value in worst.items()},
+        "resets": sum(r.metrics.resets for r in runs if r.metrics is not None),
+    }
+
+
+def _finite_max(values: Iterable[float]) -> float | None:
+    arr = np.asarray(list(values), dtype=np.float64)
+    arr = arr[np.isfinite(arr)]
+    return float(arr.max()) if arr.size else None
+
+
 def format_chained(chained: dict) -> str:
     """One table of the chained trajectory's metrics."""
-    keys = ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m")
+    keys = ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m", "scale_err_median",
+            "independent_scale_err_median")
     return "Chained odom trajectory (yaw + position of the first pose aligned)\n" + _grid(
         list(keys), [[_fmt(chained[k], k) if not isinstance(chained[k], int) else str(chained[k]) for k in keys]])
+
+
+def format_pooled_chained(pooled: dict) -> str:
+    """One table of ``pool_chained``'s metrics."""
+    keys = ("scale_err_median", "independent_scale_err_median", "ate_m_max", "drift_pct_max", "gravity_err_deg_max",
+            "resets")
+    return f"Chained odom trajectories, {pooled['sequences']} sequences pooled\n" + _grid(
+        list(keys), [[_fmt(pooled[k], k) if not isinstance(pooled[k], int) else str(pooled[k]) for k in keys]])

@@ -146,12 +146,16 @@ def ablate(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = N
 @dataclass
 class OnlineRun:
     """The chained run of a sequence: stamps [N] s, T_OB [N,4,4] the odom trajectory, T_WB [N,4,4] GT body
-    poses at the same stamps, decisions: the estimator's description of each clip, metrics (None with < 2 poses)."""
+    poses at the same stamps, decisions: the estimator's description of each clip; scale_err,
+    independent_scale_err: [n_clips] |Scale (Traj.) - 1| of each clip chained and of its own GT-free
+    initialisation (NaN: no value); metrics (None with < 2 poses)."""
 
     stamps: np.ndarray
     T_OB: np.ndarray
     T_WB: np.ndarray
     decisions: list[str] = field(default_factory=list)
+    scale_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    independent_scale_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
     metrics: ChainedMetrics | None = None
 
 
@@ -167,7 +171,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     if seq.gt is None:
         raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
     est = OnlineEstimator(options=online_options, init_options=options.init_options)
-    evals, decisions, gt_by_stamp = [], [], {}
+    evals, decisions, gt_by_stamp, scale_err, independent = [], [], {}, [], []
     for idx in tqdm(clip_indices(len(seq.stamps), options=options) if clips is None else clips,
                     desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
         clip = make_clip(seq, idx)
@@ -177,9 +181,14 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
         decisions.append(est.last.describe())
         gt_by_stamp.update(zip(clip.stamps.tolist(), clip.gt.T_WB))
         evals.append(ev)
+        diag = ev.result.init.diagnostics
+        base_scale = ev.columns["base"].scale_traj  # linear in the scale: the free init's = base * its scale
+        independent.append(abs(base_scale * diag["free_scale"] - 1.0) if diag["free_status"] == "ok" else np.nan)
+        scale_err.append(abs(ev.columns[ev.mode].scale_traj - 1.0) if ev.mode in ev.columns else np.nan)
     traj = est.trajectory
     T_WB = np.array([gt_by_stamp[t] for t in traj.stamps.tolist()]).reshape(-1, 4, 4)
-    run = OnlineRun(traj.stamps, traj.T_OB, T_WB, decisions)
+    run = OnlineRun(traj.stamps, traj.T_OB, T_WB, decisions, np.array(scale_err), np.array(independent))
     if len(traj.stamps) >= 2:
-        run.metrics = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets))
+        run.metrics = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets), scale_err=run.scale_err,
+                                      independent_scale_err=run.independent_scale_err)
     return evals, run

@@ -1,5 +1,6 @@
-"""Online metric state across clips (beyond the paper): priors carried from clip to clip, their consistency tests
-and reset, and the chaining of the clips into one continuous, gravity-aligned odom trajectory (REP-105)."""
+"""Online metric state across clips (beyond the paper): a joint fit of the clips of the last seconds (``window``),
+priors from the odom state with their consistency tests, restarts, and the chaining of the clips into one
+continuous, gravity-aligned odom trajectory (REP-105)."""
 
 from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
 from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator

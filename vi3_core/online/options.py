@@ -1,4 +1,4 @@
-"""``OnlineOptions``: the knobs of the metric state carried across clips (priors, consistency tests, reset)."""
+"""``OnlineOptions``: the knobs of the metric state carried across clips (window, priors, consistency tests, reset)."""
 
 from __future__ import annotations
 
@@ -7,36 +7,46 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class OnlineOptions:
-    """Priors carried from clip to clip and the thresholds of their consistency tests.
+    """The online window (``vi3_core.online.window``), the priors from the odom state and their tests.
 
-    max_gap_s: s; a longer time between the previous clip's nearest frame and this clip's first frame resets the
-        state (the clip falls back to the GT-free initialisation);
-    bg_gain: weight of each clip's own gyro-bias estimate in the filtered bias (0: never updated, 1: no filter);
-    gravity_gain: weight of each clip's own gravity estimate when it refines the gravity prior;
-    gravity_tol_deg: the gravity prior is dropped when it is farther than this from the clip's own estimate;
-    residual_ratio, residual_floor_m: a prior is dropped when the position residual with it exceeds
-        max(residual_ratio * the residual without it, residual_floor_m), metres (gravity: the free (s, v1) position
-        fit with the prior against the one with the clip's own gravity; velocity: v1 held at the prior against the
-        free (s, v1) fit);
-    scale_ratio: the velocity prior is dropped when the scale it implies differs from the free position fit's by
-        more than this factor (either way);
-    v1_weight_s: s; weight of the velocity prior against the positions in the final fit (Tikhonov term);
-    imu_keep_s: s of IMU kept for the bridges between clips.
+    window_s: s; clips starting within this time before the current clip are fitted jointly with it;
+    max_gap_s: s; a longer time between the previous clip's last frame and this clip's first frame restarts the window
+        (the clip falls back to the GT-free initialisation);
+    ba_weight: weight of the zero-accelerometer-bias prior row (m of position per m/s^2 of bias; small: only
+        keeps ba determined when the window does not rotate);
+    velocity_link_s: weight of the IMU tie between consecutive clips' velocities (m of position per m/s);
+    residual_ratio, residual_floor_m: a new clip is inconsistent with the window when a clip's position residual
+        exceeds max(residual_ratio * the median residual of the last accepted window, residual_floor_m), metres;
+    max_rejects: that many inconsistent clips in a row restart the window from the current clip;
+    gravity_tol_deg, velocity_tol_mps: the odom state's gravity (deg) and velocity (m/s) at the clip's first frame,
+        propagated through the IMU, are dropped as priors when they differ from the window's own estimate by more;
+    gravity_weight_s2, v1_weight_s: weights of the accepted priors' rows (s^2, s: a position-equivalent metre);
+    max_scale_rel_sigma: a clip whose scale has a larger relative 1-sigma over the window is unobservable;
+    bg_window_s: s; the gyro bias is the median of the own estimates of the clips of this long;
+    imu_keep_s: s of IMU kept for the window and the bridges between clips (> window_s).
     """
 
+    window_s: float = 7.0
     max_gap_s: float = 1.0
-    bg_gain: float = 0.2
-    gravity_gain: float = 0.1
-    gravity_tol_deg: float = 30.0
+    ba_weight: float = 1.0
+    velocity_link_s: float = 0.05
     residual_ratio: float = 4.0
-    residual_floor_m: float = 0.03
-    scale_ratio: float = 2.0
+    residual_floor_m: float = 0.01
+    max_rejects: int = 3
+    gravity_tol_deg: float = 2.0
+    velocity_tol_mps: float = 0.25
+    gravity_weight_s2: float = 0.02
     v1_weight_s: float = 0.05
-    imu_keep_s: float = 5.0
+    max_scale_rel_sigma: float = 0.05
+    bg_window_s: float = 20.0
+    imu_keep_s: float = 10.0
 
     def __post_init__(self) -> None:
-        for name in ("bg_gain", "gravity_gain"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"OnlineOptions.{name} must be in [0, 1], got {getattr(self, name)}")
-        if self.scale_ratio <= 1.0 or self.residual_ratio <= 0.0 or self.max_gap_s <= 0.0 or self.imu_keep_s <= 0.0:
-            raise ValueError("OnlineOptions: scale_ratio must be > 1; residual_ratio, max_gap_s and imu_keep_s > 0")
+        positive = ("window_s", "max_gap_s", "ba_weight", "velocity_link_s", "residual_ratio", "residual_floor_m",
+                    "max_rejects", "gravity_tol_deg", "velocity_tol_mps", "max_scale_rel_sigma", "bg_window_s")
+        bad = [name for name in positive if not getattr(self, name) > 0]
+        bad += [name for name in ("gravity_weight_s2", "v1_weight_s") if not getattr(self, name) >= 0]
+        if bad:
+            raise ValueError(f"OnlineOptions: {', '.join(bad)} must be positive (weights >= 0)")
+        if not self.imu_keep_s > self.window_s + self.max_gap_s:
+            raise ValueError(f"OnlineOptions.imu_keep_s ({self.imu_keep_s}) must exceed window_s + max_gap_s")

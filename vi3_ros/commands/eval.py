@@ -1,7 +1,10 @@
-"""``vi3 eval INPUT``: the paper's metrics on a sequence with ground truth (ASL folder, ROS 1 bag, rosbag2, .mcap).
+"""``vi3 eval INPUT [INPUT ...]``: the paper's metrics on sequences with ground truth (ASL folder, ROS 1 bag,
+rosbag2, .mcap).
 
 Prints paper-like tables (Base / IMU-init / IMU-cond / TTR columns) or, with ``--json``, one JSON object; writes
-the top-down trajectory / point-cloud plot (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``).
+the top-down trajectory / point-cloud plot (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``). With
+several inputs every sequence is reported, then the clips of all of them pooled (the paper's medians over clips);
+the JSON object is then {"sequences": [...], "pooled": {...}} and plots / TUM files get the sequence name.
 """
 
 from __future__ import annotations
@@ -16,7 +19,9 @@ MODES = ("init", "cond", "ttr")  # = vi3_core.anchor.MODES, not imported here: t
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="evaluate VI3 against ground truth (paper metrics, tables, plot)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("input", help="ASL folder (mav0/ or its parent), ROS 1 .bag, rosbag2 folder or .mcap with GT")
+    p.add_argument("input", nargs="+",
+                   help="ASL folder (mav0/ or its parent), ROS 1 .bag, rosbag2 folder or .mcap with GT; several: "
+                        "each reported, then pooled")
     p.add_argument("--calib", default=None, metavar="YAML",
                    help="camera calibration (EuRoC sensor.yaml or Kalibr camchain) for bags that carry none")
     p.add_argument("--backbone", default="classical", help="3DFM backbone (default: the embedded 'classical')")
@@ -53,45 +58,69 @@ def run(args: argparse.Namespace) -> int:
     from vi3_core.anchor import AnchorOptions
     from vi3_core.backbones import make_backbone
     from vi3_core.errors import Vi3Error
-    from vi3_core.eval import plot, report, runner, tum
-    from vi3_ros.io.reader import open_sequence
+    from vi3_core.eval import report, runner
 
-    online = None
     try:
-        seq = open_sequence(args.input, calib=args.calib)
         backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
         options = runner.EvalOptions(
             mode=args.mode, init_source=args.init_source, clips=args.clips, n=args.n, stride=args.stride,
             hop=args.hop, max_clips=args.max_clips, progress=not args.no_progress,
             anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
-        meta = {"backbone": args.backbone, "sequence": seq.name}
-        if args.ablate:
-            variants = runner.ablate(seq, backbone, options=options)
-            summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
-            text, obj = report.format_ablation(summaries), {"ablations": summaries}
-            evals = next(iter(variants.values()))
-        elif args.independent or args.init_source == "gt":
-            evals = runner.evaluate_sequence(seq, backbone, options=options)
-            obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
-            text = report.format_tables(obj)
+        results = [_evaluate(args, path, backbone, options, several=len(args.input) > 1) for path in args.input]
+        if len(results) == 1:
+            obj, text = results[0][:2]
         else:
-            evals, online = runner.evaluate_online(seq, backbone, options=options)
-            obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
-            obj["chained"] = report.chained_summary(online)
-            text = report.format_tables(obj) + "\n" + report.format_chained(obj["chained"])
+            obj, text = {"sequences": [r[0] for r in results]}, "\n\n".join(r[1] for r in results)
+            if not args.ablate:
+                evals = [e for r in results for e in r[2]]
+                pooled = report.summarise(evals, mode=args.mode, init_source=args.init_source,
+                                          backbone=args.backbone, sequence=f"pooled ({len(results)} sequences)")
+                text += "\n\n" + report.format_tables(pooled)
+                runs = [r[3] for r in results if r[3] is not None]
+                if runs:
+                    pooled["chained"] = report.pool_chained(runs)
+                    text += "\n" + report.format_pooled_chained(pooled["chained"])
+                obj["pooled"] = pooled
         print(report.to_json(obj) if args.json else text)
         if args.json_out:
             Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
             Path(args.json_out).write_text(report.to_json(obj) + "\n")
-        if args.plot:
-            path = plot.save_plot(args.plot, evals, title=f"{seq.name}: {args.backbone}, {args.mode}")
-            print(f"plot: {path}", file=sys.stderr)
-        if args.export_tum:
-            paths = tum.export_tum(args.export_tum, evals)
-            if online is not None:
-                paths += tum.export_chained(args.export_tum, online)
-            print(f"TUM trajectories: {len(paths)} files in {args.export_tum}", file=sys.stderr)
     except (Vi3Error, ValueError, OSError) as exc:
         print(f"vi3 eval: error: {exc}", file=sys.stderr)
         return 2
     return 0
+
+
+def _evaluate(args: argparse.Namespace, path: str, backbone, options, *, several: bool) -> tuple:
+    """One input: (JSON object, text, evals, OnlineRun or None); writes its plot and TUM files (named after the
+    sequence when there are several inputs)."""
+    from vi3_core.eval import plot, report, runner, tum
+    from vi3_ros.io.reader import open_sequence
+
+    seq = open_sequence(path, calib=args.calib)
+    meta = {"backbone": args.backbone, "sequence": seq.name}
+    online = None
+    if args.ablate:
+        variants = runner.ablate(seq, backbone, options=options)
+        summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
+        obj, text = {"sequence": seq.name, "ablations": summaries}, report.format_ablation(summaries)
+        evals = next(iter(variants.values()))
+    elif args.independent or args.init_source == "gt":
+        evals = runner.evaluate_sequence(seq, backbone, options=options)
+        obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
+        text = report.format_tables(obj)
+    else:
+        evals, online = runner.evaluate_online(seq, backbone, options=options)
+        obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
+        obj["chained"] = report.chained_summary(online)
+        text = report.format_tables(obj) + "\n" + report.format_chained(obj["chained"])
+    if args.plot:
+        png = Path(args.plot)
+        png = png.with_name(f"{png.stem}_{seq.name}{png.suffix}") if several else png
+        print(f"plot: {plot.save_plot(png, evals, title=f'{seq.name}: {args.backbone}, {args.mode}')}",
+              file=sys.stderr)
+    if args.export_tum:
+        out = Path(args.export_tum) / seq.name if several else Path(args.export_tum)
+        paths = tum.export_tum(out, evals) + (tum.export_chained(out, online) if online is not None else [])
+        print(f"TUM trajectories: {len(paths)} files in {out}", file=sys.stderr)
+    return obj, text, evals, online

@@ -7,17 +7,16 @@ import json
 import sys
 
 from vi3_core.errors import Vi3Error
-from vi3_ros.params import load_yaml, parse_assignment, resolve
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="replay a bag or ASL folder through the node's pipeline into an MCAP",
                        description="Drives the same clip buffer, worker and anchoring as vi3_node in bag time and "
                        "writes what the node would publish. Parameters: docs/node.md.")
-    p.add_argument("input", help="ASL folder, ROS 1 .bag, rosbag2 directory or .mcap")
+    p.add_argument("input", help="ASL folder, make-bag folder, ROS 1 .bag, rosbag2 directory or .mcap")
     p.add_argument("--output", "-o", required=True, help="OUT.mcap (one MCAP file) or a rosbag2 directory name")
     p.add_argument("--backbone", help="3D foundation model (parameter backbone)")
-    p.add_argument("--mode", choices=("init", "cond", "ttr"), help="refinement (parameter mode)")
+    p.add_argument("--mode", help="refinement after the fast init result (parameter mode)")
     p.add_argument("--calib", help="EuRoC sensor.yaml or Kalibr camchain YAML (parameter calib_file)")
     p.add_argument("--device", help="torch device (parameter device)")
     p.add_argument("--params-file", help="ROS 2 parameter YAML, e.g. config/euroc.yaml")
@@ -29,7 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def values_from_args(args: argparse.Namespace) -> dict:
-    """Parameter values: defaults < --params-file < --param < the named options."""
+    """Parameter values: defaults < --params-file < --param < the named options, checked once by ``resolve``."""
+    from vi3_ros.params import load_yaml, parse_assignment, resolve  # the options' modules import torch
+
     overrides = load_yaml(args.params_file) if args.params_file else {}
     overrides.update(parse_assignment(a) for a in args.param)
     named = {"backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device}

@@ -7,9 +7,11 @@ typestore's CDR deserialiser) and decoded with ``msg_adapters``. Topics default 
 
 Bags carry no calibration (EuRoC's carry no CameraInfo): pass ``calib=`` (a ``CameraCalib`` or a path to a
 Kalibr camchain-imucam / EuRoC sensor.yaml), or leave a ``*camchain-imucam*.yaml`` next to the bag or inside
-the rosbag2 directory (``vi3 make-bag`` writes one). A ``vi3 make-bag`` output folder opens as its rosbag2
-MCAP. Ground truth from a bag is poses only: velocities are derived from them (``GroundTruthTrack``: central
-differences) and biases are unknown.
+the rosbag2 directory (``vi3 make-bag`` writes one). A bag that does carry ``sensor_msgs/CameraInfo`` or
+``/tf_static`` gives them to ``iter_events`` on request, as recorded (``CameraInfoEvent``, ``TfStaticEvent``), in
+record order with the frames and IMU samples, as a node subscribed to them would receive them. A ``vi3 make-bag``
+output folder opens as its rosbag2 MCAP. Ground truth from a bag is poses only: velocities are derived from them
+(``GroundTruthTrack``: central differences) and biases are unknown.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import functools
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -25,7 +28,7 @@ from msg_adapters.image import image_to_numpy
 from msg_adapters.imu import imu_to_sample
 from msg_adapters.poses import transform_to_T
 from msg_adapters.stamps import stamp_to_ns
-from msg_adapters.types import jazzy_types
+from msg_adapters.types import full_name, jazzy_types
 from vi3_core.dataset.asl import find_mav0, read_asl
 from vi3_core.dataset.calib import CameraCalib, load_calib
 from vi3_core.dataset.sequence import GroundTruthTrack, Sequence
@@ -55,13 +58,40 @@ class ImuEvent:
 
 
 @dataclass(frozen=True)
+class CameraInfoEvent:
+    """A ``sensor_msgs/CameraInfo`` message as recorded (a rosbags class; from a ROS 1 bag, or one converted from
+    ROS 1, with the ROS 1 field names), for ``Pipeline.add_camera_info``."""
+
+    msg: Any
+
+
+@dataclass(frozen=True)
+class TfStaticEvent:
+    """A ``tf2_msgs/TFMessage`` of ``/tf_static`` as recorded (a rosbags class), for ``Pipeline.add_tf_static``."""
+
+    msg: Any
+
+
+Event = ImageEvent | ImuEvent | CameraInfoEvent | TfStaticEvent
+
+
+@dataclass(frozen=True)
 class _GtEvent:
     t_ns: int
     T_WB: np.ndarray
 
 
+#: role -> (message type, preferred topic); image and IMU are required, the others read where present.
+_ROLES: dict[str, tuple[str, str | None]] = {
+    "image": (topics.IMAGE_TYPE, topics.IMAGE_TOPIC), "imu": (topics.IMU_TYPE, topics.IMU_TOPIC),
+    "gt": (topics.GT_TYPE, topics.GT_TOPIC), "camera_info": (topics.CAMERA_INFO_TYPE, None),
+    "tf_static": (topics.TF_TYPE, topics.TF_STATIC_TOPIC)}
+_REQUIRED = ("image", "imu")
+_CALIBRATION_ROLES = ("camera_info", "tf_static")  # named topics, skipped when the recording lacks them
+
+
 # ------------------------------------------------------------------------------------------- bag access
-def _resolve(path) -> tuple[Path, str]:
+def resolve_input(path) -> tuple[Path, str]:
     """(path to read, kind): "asl", "rosbag1", "rosbag2" or "mcap". A ``vi3 make-bag`` folder reads its MCAP."""
     path = Path(path)
     if path.is_dir():
@@ -101,27 +131,29 @@ def _pick(path: Path, available: dict[str, str], msgtype: str, preferred: str | 
     return None
 
 
-def _normalise(msgtype: str) -> str:
-    """"sensor_msgs/Image" (ROS 1 style) -> "sensor_msgs/msg/Image"."""
-    parts = msgtype.split("/")
-    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
+def _choose(path: Path, available: dict[str, str], want: dict[str, str | None]) -> dict[str, str]:
+    """topic -> role for the roles in ``want`` (role -> explicit topic or None), given the recording's topics
+    (name -> ROS 2 type name). A calibration role whose topic the recording lacks is left out."""
+    chosen = {}
+    for role, explicit in want.items():
+        if role in _CALIBRATION_ROLES and explicit not in available:
+            continue
+        topic = _pick(path, available, *_ROLES[role], explicit, required=role in _REQUIRED)
+        if topic is not None:
+            chosen[topic] = role
+    return chosen
 
 
-def _bag_messages(path: Path, kind: str, want: dict[str, str | None], *, required: tuple[str, ...]):
+def _bag_messages(path: Path, kind: str, want: dict[str, str | None]) -> Iterator[tuple[str, Any]]:
     """Yield (role, msg) in record order for the roles in ``want`` (role -> explicit topic or None)."""
-    roles = {"image": (topics.IMAGE_TYPE, topics.IMAGE_TOPIC), "imu": (topics.IMU_TYPE, topics.IMU_TOPIC),
-             "gt": (topics.GT_TYPE, topics.GT_TOPIC)}
     if kind == "mcap":
-        yield from _mcap_messages(path, roles, want, required)
+        yield from _mcap_messages(path, want)
         return
     from rosbags.highlevel import AnyReader, AnyReaderError
 
     try:
         with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
-            available = {c.topic: _normalise(c.msgtype) for c in reader.connections}
-            chosen = {_pick(path, available, roles[r][0], roles[r][1], want.get(r), required=r in required): r
-                      for r in want}
-            chosen.pop(None, None)
+            chosen = _choose(path, {c.topic: full_name(c.msgtype) for c in reader.connections}, want)
             conns = [c for c in reader.connections if c.topic in chosen]
             for conn, _, raw in reader.messages(connections=conns):
                 yield chosen[conn.topic], reader.deserialize(raw, conn.msgtype)
@@ -129,7 +161,7 @@ def _bag_messages(path: Path, kind: str, want: dict[str, str | None], *, require
         raise DataError(f"{path}: cannot read the bag (truncated, unindexed or not a bag?): {err}") from err
 
 
-def _mcap_messages(path: Path, roles, want, required):
+def _mcap_messages(path: Path, want: dict[str, str | None]) -> Iterator[tuple[str, Any]]:
     """A bare .mcap file (no metadata.yaml): the mcap package reads it, the Jazzy typestore decodes CDR."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
@@ -141,17 +173,19 @@ def _mcap_messages(path: Path, roles, want, required):
             summary = reader.get_summary()
             if summary is None:
                 raise DataError(f"{path}: MCAP file has no summary section (truncated or unindexed)")
-            available = {ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
-            chosen = {_pick(path, available, roles[r][0], roles[r][1], want.get(r), required=r in required): r
-                      for r in want}
-            chosen.pop(None, None)
+            chosen = _choose(path, {ch.topic: summary.schemas[ch.schema_id].name
+                                    for ch in summary.channels.values()}, want)
             for schema, channel, message in reader.iter_messages(topics=list(chosen), log_time_order=True):
                 yield chosen[channel.topic], store.deserialize_cdr(message.data, schema.name)
     except McapError as err:
         raise DataError(f"{path}: cannot read the MCAP file: {err}") from err
 
 
-def _decode(role: str, msg):
+def _decode(role: str, msg: Any) -> Event | _GtEvent:
+    if role == "camera_info":
+        return CameraInfoEvent(msg)
+    if role == "tf_static":
+        return TfStaticEvent(msg)
     ns = stamp_to_ns(msg.header.stamp)
     if role == "image":
         image = image_to_numpy(msg)
@@ -162,24 +196,42 @@ def _decode(role: str, msg):
     return _GtEvent(ns, transform_to_T(msg.transform))
 
 
-def _events(path: Path, kind: str, want: dict[str, str | None]):
-    for role, msg in _bag_messages(path, kind, want, required=("image", "imu")):
+def _events(path: Path, kind: str, want: dict[str, str | None]) -> Iterator[Event | _GtEvent]:
+    for role, msg in _bag_messages(path, kind, want):
         yield _decode(role, msg)
 
 
 # ------------------------------------------------------------------------------------------- public API
-def iter_events(path, *, image_topic: str | None = None, imu_topic: str | None = None
-                ) -> Iterator[ImageEvent | ImuEvent]:
-    """Time-ordered camera frames and IMU samples of any supported recording (images decoded lazily)."""
-    path, kind = _resolve(path)
+def merge_by_time(*stamps_ns: np.ndarray) -> Iterator[tuple[int, int, int]]:
+    """Streams of int ns stamps (one [N_k] array each, e.g. an ASL folder's camera, IMU and ground-truth CSVs)
+    merged into one record order, as a recorded bag has them: (stamp ns, stream k, index in stream k), by stamp,
+    ties by stream then index."""
+    ns = np.concatenate([np.asarray(s, np.int64).reshape(-1) for s in stamps_ns])
+    stream = np.concatenate([np.full(len(s), k) for k, s in enumerate(stamps_ns)])
+    index = np.concatenate([np.arange(len(s)) for s in stamps_ns])
+    order = np.lexsort((index, stream, ns))
+    return zip(ns[order].tolist(), stream[order].tolist(), index[order].tolist())
+
+
+def iter_events(path, *, image_topic: str | None = None, imu_topic: str | None = None,
+                camera_info_topic: str | None = None, tf_static: bool = False) -> Iterator[Event]:
+    """Camera frames and IMU samples of any supported recording in record order (images decoded lazily).
+
+    With ``camera_info_topic`` the ``sensor_msgs/CameraInfo`` messages of that topic, with ``tf_static`` those of
+    ``/tf_static``, come in the same stream where the recording has them (an ASL folder has neither: its
+    calibration is ``cam0/sensor.yaml``)."""
+    path, kind = resolve_input(path)
     if kind != "asl":
-        yield from _events(path, kind, {"image": image_topic, "imu": imu_topic})
+        want = {"image": image_topic, "imu": imu_topic}
+        if camera_info_topic:
+            want["camera_info"] = camera_info_topic
+        if tf_static:
+            want["tf_static"] = topics.TF_STATIC_TOPIC
+        yield from _events(path, kind, want)
         return
     seq = read_asl(path)
-    order = sorted([(int(k), 0, i) for i, k in enumerate(seq.stamps_ns.tolist())]
-                   + [(int(k), 1, i) for i, k in enumerate(seq.imu_ns.tolist())])
-    for ns, which, i in order:
-        if which == 0:
+    for ns, stream, i in merge_by_time(seq.stamps_ns, seq.imu_ns):
+        if stream == 0:
             yield ImageEvent(ns * 1e-9, ns, seq.image(i))
         else:
             yield ImuEvent(ns * 1e-9, ns, seq.imu.gyro[i], seq.imu.accel[i])
@@ -202,7 +254,7 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     ASL folders load images and depth lazily; bags are read once into memory (images as uint8 arrays).
     ``calib`` overrides or supplies the calibration (bags have none of their own; see the module docstring).
     """
-    path, kind = _resolve(path)
+    path, kind = resolve_input(path)
     if isinstance(calib, (str, Path)):
         calib = load_calib(calib)
     if kind == "asl":

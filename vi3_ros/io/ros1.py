@@ -18,13 +18,13 @@ from rosbags.typesys import Stores, get_typestore
 
 from msg_adapters.image import numpy_to_image
 from msg_adapters.imu import samples_to_imus
-from msg_adapters.stamps import make_header
+from msg_adapters.poses import transform_stamped
 from msg_adapters.types import MessageTypes
-from vi3_core import so3
 from vi3_core.dataset.asl import read_asl
 from vi3_core.errors import DataError
 from vi3_core.types import ImuSamples
 from vi3_ros.io import topics
+from vi3_ros.io.reader import merge_by_time
 
 
 @functools.cache
@@ -54,15 +54,8 @@ def write_ros1_bag(asl_path, bag_path, *, compression: str | None = None) -> Pat
     bag_path.parent.mkdir(parents=True, exist_ok=True)
     types, store = ros1_types(), noetic_typestore()
     imu_msgs = samples_to_imus(ImuSamples(seq.imu.t, seq.imu.gyro, seq.imu.accel), frame_id=topics.IMU_FRAME,
-                               types=types)
-    for msg, ns in zip(imu_msgs, seq.imu_ns.tolist()):  # exact integer stamps, not float seconds
-        msg.header = make_header(stamp_ns=ns, frame_id=topics.IMU_FRAME, types=types)
+                               types=types, stamps_ns=seq.imu_ns.tolist())
     gt_ns = seq.gt.t_ns if seq.gt is not None else np.zeros(0, np.int64)
-    gt_q = so3.R_to_quat(seq.gt.T_WB[:, :3, :3]) if seq.gt is not None else None
-    # (stamp, topic order, index): one merged, time-ordered stream like a recorded bag.
-    events = sorted([(int(k), 0, i) for i, k in enumerate(seq.stamps_ns.tolist())]
-                    + [(int(k), 1, i) for i, k in enumerate(seq.imu_ns.tolist())]
-                    + [(int(k), 2, i) for i, k in enumerate(gt_ns.tolist())])
     writer = Writer(bag_path)
     if compression is not None:
         writer.set_compression(Writer.CompressionFormat[compression.upper()])
@@ -71,23 +64,14 @@ def write_ros1_bag(asl_path, bag_path, *, compression: str | None = None) -> Pat
                  writer.add_connection(topics.IMU_TOPIC, topics.IMU_TYPE, typestore=store)]
         if len(gt_ns):
             conns.append(writer.add_connection(topics.GT_TOPIC, topics.GT_TYPE, typestore=store))
-        for ns, kind, i in events:
-            if kind == 0:
+        for ns, stream, i in merge_by_time(seq.stamps_ns, seq.imu_ns, gt_ns):  # one time-ordered stream, as recorded
+            if stream == 0:
                 msg = numpy_to_image(seq.image(i), encoding="mono8", stamp_ns=ns, frame_id=topics.CAM_FRAME,
                                      types=types)
-            elif kind == 1:
+            elif stream == 1:
                 msg = imu_msgs[i]
-            else:
-                msg = _transform_stamped(gt_q[i], seq.gt.T_WB[i, :3, 3], ns, types)
-            writer.write(conns[kind], ns, store.serialize_ros1(msg, conns[kind].msgtype))
+            else:  # the body pose in the world, as EuRoC's Vicon topic
+                msg = transform_stamped(seq.gt.T_WB[i], parent=topics.WORLD_FRAME, child=topics.GT_CHILD_FRAME,
+                                        stamp_ns=ns, types=types)
+            writer.write(conns[stream], ns, store.serialize_ros1(msg, conns[stream].msgtype))
     return bag_path
-
-
-
-def _transform_stamped(q: np.ndarray, p: np.ndarray, ns: int, types: MessageTypes):
-    """``geometry_msgs/TransformStamped`` world -> body from a quaternion (x, y, z, w) and a position (m)."""
-    transform = types.make("geometry_msgs/msg/Transform",
-                           translation=types.make("geometry_msgs/msg/Vector3", x=p[0], y=p[1], z=p[2]),
-                           rotation=types.make("geometry_msgs/msg/Quaternion", x=q[0], y=q[1], z=q[2], w=q[3]))
-    return types.make(topics.GT_TYPE, header=make_header(stamp_ns=ns, frame_id=topics.WORLD_FRAME, types=types),
-                      child_frame_id=topics.GT_CHILD_FRAME, transform=transform)

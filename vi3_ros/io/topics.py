@@ -1,4 +1,4 @@
-"""EuRoC's topic names and frame ids (as in the Vicon-room bags)."""
+"""EuRoC's topic names and frame ids (as in the Vicon-room bags), and the message types the reader knows."""
 
 IMAGE_TOPIC = "/cam0/image_raw"
 IMU_TOPIC = "/imu0"
@@ -11,3 +11,6 @@ GT_CHILD_FRAME = "firefly_sbx"
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 IMU_TYPE = "sensor_msgs/msg/Imu"
 GT_TYPE = "geometry_msgs/msg/TransformStamped"
+CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+TF_STATIC_TOPIC = "/tf_static"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
