@@ -7,6 +7,7 @@ import pytest
 
 from vi3_core import so3
 from vi3_core.eval import metrics
+from vi3_core.init.oracle import gt_init_state
 from vi3_core.types import GroundTruth, InitResult, InitStatus
 
 
@@ -133,7 +134,7 @@ def _gt_clip_state() -> GroundTruth:
 
 def test_init_metrics_against_gt_in_first_body_frame() -> None:
     gt = _gt_clip_state()
-    g, v1, bg = metrics.gt_init_state(gt)
+    g, v1, bg = gt_init_state(gt)
     R_WB1 = gt.T_WB[0, :3, :3]
     np.testing.assert_allclose(R_WB1 @ g, gt.g_W, atol=1e-12)
     np.testing.assert_allclose(R_WB1 @ v1, gt.v_WB[0], atol=1e-12)
@@ -168,7 +169,7 @@ def test_gt_camera_poses_compose_extrinsics_and_reanchor() -> None:
 def test_gt_without_biases_gives_nan_bias_error_not_a_crash() -> None:
     gt = _gt_clip_state()
     no_bias = GroundTruth(T_WB=gt.T_WB, v_WB=gt.v_WB, bg=np.full(3, np.nan), ba=np.full(3, np.nan))
-    g, v1, _ = metrics.gt_init_state(no_bias)
+    g, v1, _ = gt_init_state(no_bias)
     m = metrics.init_metrics(InitResult(status=InitStatus.OK, reason="", g=g, v1=v1, scale=1.0), no_bias)
     assert np.isnan(m.gyro_bias_err) and np.isnan(m.gyro_bias_rel)
     assert m.gravity_err_deg == pytest.approx(0.0, abs=1e-9) and m.v1_mag_err == pytest.approx(0.0, abs=1e-12)

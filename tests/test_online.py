@@ -19,11 +19,11 @@ from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
-from vi3_core.eval import metrics
 from vi3_core.eval.chained import chained_metrics
 from vi3_core.eval.metrics import gt_camera_poses
 from vi3_core.eval.tum import read_tum
 from vi3_core.init import initialise_clip
+from vi3_core.init.oracle import gt_init_state, oracle_init
 from vi3_core.init.position_fit import fit_positions
 from vi3_core.online import OnlineEstimator
 from vi3_core.online.window import WindowClip, WindowSystem
@@ -68,16 +68,16 @@ def _run(seq, *, noise_m: float = 0.003, clips=None, corrupt_at: int | None = No
     return est, np.array(online), np.array(free), decisions
 
 
-def test_position_fit_recovers_scale_and_velocity_of_exact_geometry(seq):
+def test_position_fit_recovers_the_scale_of_exact_geometry(seq):
     clip = make_clip(seq, sample_clips(len(seq.stamps), mode="sliding")[2], with_depth=False)
     R1 = clip.gt.T_WB[0, :3, :3]
     g, v1 = R1.T @ clip.gt.g_W, R1.T @ clip.gt.v_WB[0]
     pre = preintegrate(clip.imu, clip.stamps, clip.gt.bg)
     geo = _geometry(clip, 0.0, np.random.default_rng(0))
-    joint = fit_positions(geo.T_wc, pre, clip.T_BC, g)
-    fixed = fit_positions(geo.T_wc, pre, clip.T_BC, g, v1=v1)
-    assert abs(joint.scale / TRUE_SCALE - 1) < 0.02 and np.linalg.norm(joint.v1 - v1) < 0.05
-    assert abs(fixed.scale / TRUE_SCALE - 1) < 0.02 and fixed.rms < 0.02
+    fit = fit_positions(geo.T_wc, pre, clip.T_BC, g, v1)
+    assert abs(fit.scale / TRUE_SCALE - 1) < 0.02 and fit.rms < 0.02
+    wrong = fit_positions(geo.T_wc, pre, clip.T_BC, g, v1 + np.array([0.5, 0.0, 0.0]))
+    assert wrong.rms > 5 * fit.rms  # a wrong velocity shows in the residual
 
 
 def test_accel_bias_jacobians_are_exact(seq):
@@ -93,9 +93,15 @@ def test_accel_bias_jacobians_are_exact(seq):
     assert np.abs(J_alpha[-1]).max() > 0.5 * (stamps[-1] - stamps[0]) ** 2 * 0.5  # not trivially zero
 
 
+def _scaled(T: np.ndarray, s: float) -> np.ndarray:
+    T = T.copy()
+    T[:, :3, 3] *= s
+    return T
+
+
 def _window(seq, clips, scales, *, bg=None):
-    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC)[:, :3, 3] / s @ c.T_BC[:3, :3].T,
-                          np.asarray(c.gt.bg).reshape(3)) for c, s in zip(clips, scales)]
+    members = [WindowClip(c.stamps, _scaled(gt_camera_poses(c.gt, c.T_BC), 1.0 / s), np.asarray(c.gt.bg).reshape(3))
+               for c, s in zip(clips, scales)]
     imu = seq.imu.window(clips[0].stamps[0], clips[-1].stamps[-1])
     bg = np.asarray(clips[0].gt.bg).reshape(3) if bg is None else bg
     return WindowSystem(members, imu, bg, clips[0].T_BC, gravity_norm=9.81, ba_weight=1.0, link_weight_s=0.05)
@@ -111,7 +117,7 @@ def test_window_fit_recovers_each_clips_scale_gravity_and_velocity(seq):
     np.testing.assert_allclose(fit.scales, scales, rtol=0.02)  # IMU noise and drifting biases over 5 s
     assert fit.rms.max() < 0.003 and np.all(fit.scale_rel_sigma < 0.01)
     for k, clip in enumerate(clips):
-        g_gt, v_gt, _ = metrics.gt_init_state(clip.gt)
+        g_gt, v_gt, _ = gt_init_state(clip.gt)
         g, v = system.state_at(k, fit)
         assert np.degrees(so3.angle_between(g, g_gt)) < 0.3 and np.linalg.norm(v - v_gt) < 0.02, k
 
@@ -120,10 +126,11 @@ def test_window_fit_exposes_a_broken_clip_and_an_unobservable_one(seq):
     idx = sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[2:7]
     clips = [make_clip(seq, i, with_depth=False) for i in idx]
     good = _window(seq, clips, np.ones(len(clips))).solve()
-    broken = WindowClip(clips[-1].stamps, np.zeros((clips[-1].n, 3)), np.zeros(3))
-    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC)[:, :3, 3] @ c.T_BC[:3, :3].T,
-                          np.asarray(c.gt.bg).reshape(3)) for c in clips]
-    twisted = members[:-1] + [WindowClip(members[-1].stamps, members[-1].a[:, [1, 0, 2]], members[-1].bg)]
+    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC), np.asarray(c.gt.bg).reshape(3)) for c in clips]
+    last = members[-1]
+    twisted = members[:-1] + [WindowClip(last.stamps, _scaled(last.T_wc, 1.0)[:, :, [1, 0, 2, 3]][:, [1, 0, 2, 3]],
+                                         last.bg)]
+    broken = WindowClip(last.stamps, _scaled(last.T_wc, 0.0), last.bg)
     imu = seq.imu.window(clips[0].stamps[0], clips[-1].stamps[-1])
     bg = np.asarray(clips[0].gt.bg).reshape(3)
     kw = dict(gravity_norm=9.81, ba_weight=1.0, link_weight_s=0.05)
@@ -234,3 +241,13 @@ def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
     assert pooled["drift_pct_max"] == max(s["chained"]["drift_pct"] for s in obj["sequences"])
     assert all((tmp_path / f"eval_{n}.png").is_file() and (tmp_path / "tum" / n / "odom_vi3.txt").is_file()
                for n in names)
+
+
+def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(seq):
+    """GT tracks without biases (Vicon-only bags): the oracle keeps GT gravity and v1, estimates bg GT-free."""
+    clip = make_clip(seq, sample_clips(len(seq.stamps), mode="sliding")[3], with_depth=False)
+    geo = _geometry(clip, 0.0, np.random.default_rng(0))
+    no_bias = replace(clip, gt=replace(clip.gt, bg=None, ba=None))
+    result = oracle_init(no_bias, geo)
+    assert result.ok and abs(result.scale / TRUE_SCALE - 1) < 0.02, result.reason
+    assert np.linalg.norm(result.bg - np.asarray(clip.gt.bg).reshape(3)) < 0.005

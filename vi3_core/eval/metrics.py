@@ -29,6 +29,7 @@ import numpy as np
 
 from vi3_core import so3
 from vi3_core.errors import DataError
+from vi3_core.init.oracle import gt_init_state
 from vi3_core.types import GroundTruth, InitResult
 
 #: GT displacements below this (m) are excluded from Scale (Traj.) (paper: "near-stationary (< 1 cm)").
@@ -171,16 +172,6 @@ def geometry_metrics(T_pred: np.ndarray, T_gt: np.ndarray, depth_pred: np.ndarra
 def gt_camera_poses(gt: GroundTruth, T_BC: np.ndarray) -> np.ndarray:
     """GT camera poses [n,4,4] of a clip in its first camera frame: T_WC = T_WB T_BC, re-anchored at frame 0."""
     return so3.relative_to_first(np.einsum("nij,jk->nik", np.asarray(gt.T_WB, dtype=np.float64), T_BC))
-
-
-def gt_init_state(gt: GroundTruth) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """GT gravity g [3] and velocity v1 [3] in the first body frame B1 (R_WB1^T g_W, R_WB1^T v_WB1), and the GT
-    gyro bias bg [3] (rad/s) or None where the GT has none (None or NaN in the track, e.g. Vicon-only bags)."""
-    R_WB1 = np.asarray(gt.T_WB, dtype=np.float64)[0, :3, :3]
-    g = R_WB1.T @ np.asarray(gt.g_W, dtype=np.float64)
-    v1 = R_WB1.T @ np.asarray(gt.v_WB, dtype=np.float64)[0] if gt.v_WB is not None else np.full(3, np.nan)
-    bg = None if gt.bg is None else np.asarray(gt.bg, dtype=np.float64).reshape(-1, 3)[0]
-    return g, v1, bg if bg is not None and np.isfinite(bg).all() else None
 
 
 def init_metrics(init: InitResult, gt: GroundTruth) -> InitMetrics:

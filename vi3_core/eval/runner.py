@@ -25,6 +25,7 @@ from vi3_core.eval import metrics
 from vi3_core.eval.chained import ChainedMetrics, chained_metrics
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.init import InitOptions, oracle_init
+from vi3_core.init.oracle import gt_init_state
 from vi3_core.online import OnlineEstimator, OnlineOptions
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult
 
@@ -69,11 +70,6 @@ class EvalOptions:
                 raise ValueError(f"EvalOptions.{name} must be one of {', '.join(allowed)}; got {value!r}")
 
 
-def _model_K(backbone: Backbone, clip: Clip) -> np.ndarray:
-    """Intrinsics [3,3] of the backbone's working grid, from its own preprocessing of the clip's first image."""
-    return backbone.preprocess(clip.images[:1], clip.K).K[0].detach().double().cpu().numpy()
-
-
 def _column_metrics(geometry: Geometry, T_gt: np.ndarray, depth_gt: np.ndarray | None) -> metrics.GeometryMetrics:
     return metrics.geometry_metrics(geometry.T_wc, T_gt, geometry.depth if depth_gt is not None else None, depth_gt)
 
@@ -92,12 +88,12 @@ def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indic
                     init_options=options.init_options, init=init,
                     on_init=fast.append if options.mode != "init" else None)
     T_gt = metrics.gt_camera_poses(clip.gt, clip.T_BC)
-    g_b1, _, _ = metrics.gt_init_state(clip.gt)
+    g_b1, _, _ = gt_init_state(clip.gt)
     down_c1 = clip.T_BC[:3, :3].T @ g_b1 / np.linalg.norm(g_b1)
 
     depth_gt = None
     if clip.gt.depth is not None:
-        depth_gt = metrics.resample_depth(clip.gt.depth, clip.K, _model_K(backbone, clip),
+        depth_gt = metrics.resample_depth(clip.gt.depth, clip.K, result.base.K[0],
                                           result.base.depth.shape[1:])
     columns = {"base": _column_metrics(result.base, T_gt, depth_gt)}
     if result.init.ok:
@@ -171,7 +167,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     if seq.gt is None:
         raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
     est = OnlineEstimator(options=online_options, init_options=options.init_options)
-    evals, decisions, gt_by_stamp, scale_err, independent = [], [], {}, [], []
+    evals, decisions, scale_err, independent = [], [], [], []
     for idx in tqdm(clip_indices(len(seq.stamps), options=options) if clips is None else clips,
                     desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
         clip = make_clip(seq, idx)
@@ -179,14 +175,13 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
                            init=lambda base, clip=clip: est.initialise(clip, base))
         est.update(clip, ev.result)
         decisions.append(est.last.describe())
-        gt_by_stamp.update(zip(clip.stamps.tolist(), clip.gt.T_WB))
         evals.append(ev)
         diag = ev.result.init.diagnostics
         base_scale = ev.columns["base"].scale_traj  # linear in the scale: the free init's = base * its scale
         independent.append(abs(base_scale * diag["free_scale"] - 1.0) if diag["free_status"] == "ok" else np.nan)
         scale_err.append(abs(ev.columns[ev.mode].scale_traj - 1.0) if ev.mode in ev.columns else np.nan)
     traj = est.trajectory
-    T_WB = np.array([gt_by_stamp[t] for t in traj.stamps.tolist()]).reshape(-1, 4, 4)
+    T_WB = seq.gt.at(traj.stamps).T_WB if len(traj.stamps) else np.zeros((0, 4, 4))
     run = OnlineRun(traj.stamps, traj.T_OB, T_WB, decisions, np.array(scale_err), np.array(independent))
     if len(traj.stamps) >= 2:
         run.metrics = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets), scale_err=run.scale_err,

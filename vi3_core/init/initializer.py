@@ -17,6 +17,7 @@ from vi3_core import so3
 from vi3_core.init import gravity_seeds, validate
 from vi3_core.init.gyro_bias import body_rotations, gyro_bias_eq, refine_gyro_bias
 from vi3_core.init.options import InitOptions
+from vi3_core.init.position_fit import body_position_terms
 from vi3_core.init.velocity_gravity import ScaleGravitySystem
 from vi3_core.preintegration import interval_gyro_mean, merged_grid, preintegrate
 from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus
@@ -97,9 +98,7 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
     bg = refine_gyro_bias(imu, stamps, R_vis, bg, options.bg_refine_iters, grid=grid)
     pre = preintegrate(imu, stamps, bg, grid=grid)
 
-    a = geometry.T_wc[:, :3, 3] @ T_BC[:3, :3].T
-    t_BC = T_BC[:3, 3]
-    b = t_BC - pre.R @ t_BC
+    a, b = body_position_terms(geometry.T_wc, pre.R, T_BC)
     system = ScaleGravitySystem(a, b, pre, gravity_norm=G)
 
     all_seeds = dict(seeds or {})

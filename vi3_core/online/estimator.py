@@ -135,10 +135,8 @@ class OnlineEstimator:
             return f"no IMU over the {gap:.2f} s bridge: {why}"
         stamps = np.array([st.stamps[k], t1])
         pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, st.bg)
-        # Eqs. preintegrationRotation / Velocity / Translation over the bridge, in odom.
-        g, dt = self.g_O, gap
-        return (Placement(R_k @ pre.R[1], p_k + v_k * dt + 0.5 * g * dt**2 + R_k @ pre.alpha[1]),
-                v_k + g * dt + R_k @ pre.beta[1])
+        bridge = pre.propagate(R_k.T @ self.g_O, R_k.T @ v_k)  # in B_k, then rotated into odom
+        return Placement(R_k @ bridge.R[1], p_k + R_k @ bridge.p[1]), R_k @ bridge.v[1]
 
     def _place(self, t1: float) -> Placement:
         bridged = self._bridge(t1)
@@ -180,8 +178,7 @@ class OnlineEstimator:
         self._pending = (t1, self._place(t1))
         if free.status is InitStatus.REJECTED:
             return self._restart(free, f"clip rejected ({free.reason})", None)
-        member = WindowClip(np.asarray(clip.stamps, dtype=np.float64), geometry.T_wc[:, :3, 3] @ clip.T_BC[:3, :3].T,
-                            np.asarray(free.bg, dtype=np.float64))
+        member = WindowClip(np.asarray(clip.stamps, dtype=np.float64), geometry.T_wc, np.asarray(free.bg, np.float64))
         window = [c for c in self._window if c.stamps[0] >= t1 - o.window_s]
         if not window:
             return self._restart(free, "no window yet" if not self._window else "window expired", member)

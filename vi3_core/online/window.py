@@ -12,7 +12,7 @@ body displacement to its frame i is, with dtau = tau_i - tau_f,
     p_i - p_f = v_k dtau + 0.5 g dtau^2 + (alpha_i - alpha_f - beta_f dtau)
                 + (J_alpha_i - J_alpha_f - J_beta_f dtau) ba,
 and from its backbone camera positions t_ki (its first camera frame, model units) R_B0Bf (s_k a_ki + b_ki), with
-a_ki = R_BC t_ki and the metric lever-arm term b_ki = t_BC - R_BfBi t_BC (as in ``position_fit``). Consecutive
+a_ki = R_BC t_ki and the metric lever-arm term b_ki = t_BC - R_BfBi t_BC (``body_position_terms``). Consecutive
 clips' velocities are tied by the IMU between their first frames, v_k = v_(k-1) + g dtau_k + dbeta_k + dJ_beta_k ba
 (Eq. preintegrationVelocity), as soft rows: the gyro's random walk tilts the integrated attitude over seconds, and
 a hard tie turns that tilt into velocity errors of several per cent at walking speed. One linear least-squares
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vi3_core.init.position_fit import body_position_terms
 from vi3_core.preintegration import accel_bias_jacobians, merged_grid, preintegrate
 from vi3_core.types import ImuSamples
 
@@ -34,11 +35,11 @@ G_COLS, BA_COLS = slice(0, 3), slice(3, 6)
 
 @dataclass(frozen=True)
 class WindowClip:
-    """One clip as the window sees it: stamps [n] s; a [n,3] backbone camera positions of its first camera frame
-    rotated into body axes (R_BC t_i, model units); bg [3] rad/s, the clip's own gyro-bias estimate."""
+    """One clip as the window sees it: stamps [n] s; T_wc [n,4,4] backbone camera poses in its first camera frame
+    (model units); bg [3] rad/s, the clip's own gyro-bias estimate."""
 
     stamps: np.ndarray
-    a: np.ndarray
+    T_wc: np.ndarray
     bg: np.ndarray
 
 
@@ -78,20 +79,19 @@ class WindowSystem:
         pre = self.pre = preintegrate(imu, stamps, bg, grid=grid)
         self.J_beta, J_alpha = accel_bias_jacobians(imu, stamps, bg, grid=grid)
         self.first = [int(np.searchsorted(stamps, c.stamps[0])) for c in clips]
-        t_BC = T_BC[:3, 3]
         n_x = 6 + 4 * K
         blocks_A, blocks_y = [], []
         for k, clip in enumerate(clips):
             idx = np.searchsorted(stamps, clip.stamps)
             f, rest = idx[0], idx[1:]
             R_f = pre.R[f]
-            b = t_BC - np.einsum("ji,njk->nik", R_f, pre.R[rest]) @ t_BC
+            a, b = body_position_terms(clip.T_wc[1:], np.einsum("ji,njk->nik", R_f, pre.R[rest]), T_BC)
             dtau = pre.tau[rest] - pre.tau[f]
             A = np.zeros((len(rest), 3, n_x))
             A[:, :, G_COLS] = -0.5 * dtau[:, None, None] ** 2 * np.eye(3)
             A[:, :, BA_COLS] = -(J_alpha[rest] - J_alpha[f] - dtau[:, None, None] * self.J_beta[f])
             A[:, :, self._v(k)] = -dtau[:, None, None] * np.eye(3)
-            A[:, :, 6 + 3 * K + k] = clip.a[1:] @ R_f.T
+            A[:, :, 6 + 3 * K + k] = a @ R_f.T
             blocks_A.append(A.reshape(-1, n_x))
             blocks_y.append((pre.alpha[rest] - pre.alpha[f] - dtau[:, None] * pre.beta[f] - b @ R_f.T).reshape(-1))
         self.rows = np.cumsum([0] + [len(y) for y in blocks_y])
