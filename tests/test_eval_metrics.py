@@ -173,3 +173,15 @@ def test_gt_without_biases_gives_nan_bias_error_not_a_crash() -> None:
     m = metrics.init_metrics(InitResult(status=InitStatus.OK, reason="", g=g, v1=v1, scale=1.0), no_bias)
     assert np.isnan(m.gyro_bias_err) and np.isnan(m.gyro_bias_rel)
     assert m.gravity_err_deg == pytest.approx(0.0, abs=1e-9) and m.v1_mag_err == pytest.approx(0.0, abs=1e-12)
+
+
+def test_chained_scale_summaries_skip_the_first_clips_and_count_confident_wrong_scales():
+    from vi3_core.eval.chained import SCALE_SKIP_CLIPS, chained_metrics
+
+    T = np.repeat(np.eye(4)[None], 3, 0)
+    T[:, 0, 3] = [0.0, 1.0, 2.0]
+    err = np.array([0.9] * SCALE_SKIP_CLIPS + [0.01, np.nan, 0.03, 0.2])
+    m = chained_metrics(T, T, resets=0, scale_err=err, independent_scale_err=err * 2)
+    assert m.scale_err_median == 0.03 and m.independent_scale_err_median == 0.06  # the 0.9s of the first clips skipped
+    assert m.scale_outliers == SCALE_SKIP_CLIPS + 1 and m.independent_scale_outliers == SCALE_SKIP_CLIPS + 1
+    assert m.ate_m == 0.0 and m.drift_pct == 0.0 and m.distance_m == 2.0

@@ -215,8 +215,8 @@ def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
     assert vi3_main([*common, "--export-tum", str(tmp_path)]) == 0
     obj = json.loads(capsys.readouterr().out)
     chained = obj["chained"]
-    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets", "scale_err_median",
-            "independent_scale_err_median"} <= set(chained) and chained["resets"] == 0
+    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets", "scale_err_median", "independent_scale_err_median",
+            "scale_outliers", "independent_scale_outliers"} <= set(chained) and chained["resets"] == 0
     assert all(np.isfinite(chained[k]) for k in ("ate_m", "drift_pct", "gravity_err_deg"))
     assert chained["scale_err_median"] is None  # 2 clips: none after the first 3
     assert len(chained["decisions"]) == obj["n_clips"] == 2 and obj["vi3"]["scale_traj"] is not None
@@ -239,6 +239,7 @@ def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
     pooled = obj["pooled"]["chained"]
     assert pooled["sequences"] == 2 and pooled["resets"] == 0
     assert pooled["drift_pct_max"] == max(s["chained"]["drift_pct"] for s in obj["sequences"])
+    assert pooled["scale_outliers"] == sum(s["chained"]["scale_outliers"] for s in obj["sequences"])
     assert all((tmp_path / f"eval_{n}.png").is_file() and (tmp_path / "tum" / n / "odom_vi3.txt").is_file()
                for n in names)
 

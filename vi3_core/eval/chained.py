@@ -5,7 +5,8 @@ scale): ATE is the RMS position error after that alignment, drift the final posi
 (ground-truth path length), and the gravity error the mean angle between the up axis of odom and the true one,
 both seen from the body. The per-clip scale errors |Scale (Traj.) - 1| of the chained run and of the same clips'
 own GT-free initialisation (what the paper's per-clip pipeline outputs, computed in the same run) are compared by
-their medians after the first ``SCALE_SKIP_CLIPS`` clips, while the window fills.
+their medians after the first ``SCALE_SKIP_CLIPS`` clips, while the window fills, and by how many clips (all of
+them) claim a scale more than ``SCALE_OUTLIER`` off: a confident wrong scale, the failure a flight stack cares about.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from vi3_core import so3
 from vi3_core.errors import DataError
 
 SCALE_SKIP_CLIPS = 3
+SCALE_OUTLIER = 0.1
+NO_CLIPS = np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -26,7 +29,8 @@ class ChainedMetrics:
     """ate_m: m; drift_pct: % of distance_m (GT path length, m); gravity_err_deg: deg; resets: state resets
     after the first clip; frames: poses compared; scale_err_median: median |Scale (Traj.) - 1| of the chained
     clips after the first SCALE_SKIP_CLIPS; independent_scale_err_median: the same for the clips' own GT-free
-    initialisation (NaN where no clip has a value)."""
+    initialisation (NaN where no clip has a value); scale_outliers, independent_scale_outliers: clips whose
+    |Scale (Traj.) - 1| > SCALE_OUTLIER, chained and independent."""
 
     ate_m: float
     drift_pct: float
@@ -36,6 +40,8 @@ class ChainedMetrics:
     frames: int
     scale_err_median: float = float("nan")
     independent_scale_err_median: float = float("nan")
+    scale_outliers: int = 0
+    independent_scale_outliers: int = 0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -57,8 +63,14 @@ def median_after_skip(errors: np.ndarray) -> float:
     return float(np.median(tail)) if tail.size else float("nan")
 
 
-def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int, scale_err: np.ndarray | None = None,
-                    independent_scale_err: np.ndarray | None = None) -> ChainedMetrics:
+def count_outliers(errors: np.ndarray) -> int:
+    """Clips [n] whose scale error exceeds SCALE_OUTLIER (NaN: no scale claimed, not counted)."""
+    errors = np.asarray(errors, dtype=np.float64)
+    return int((errors[np.isfinite(errors)] > SCALE_OUTLIER).sum())
+
+
+def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int, scale_err: np.ndarray = NO_CLIPS,
+                    independent_scale_err: np.ndarray = NO_CLIPS) -> ChainedMetrics:
     """T_OB, T_WB: [N,4,4] estimated (odom) and GT (world, z up) body poses at the same stamps, N >= 2;
     scale_err, independent_scale_err: [n_clips] per-clip |Scale (Traj.) - 1| (NaN: no value), in clip order."""
     if len(T_OB) != len(T_WB) or len(T_OB) < 2:
@@ -72,7 +84,7 @@ def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int, scale_er
     return ChainedMetrics(ate_m=float(np.sqrt((err**2).mean())),
                           drift_pct=float(100.0 * err[-1] / distance) if distance > 0 else float("nan"),
                           gravity_err_deg=float(np.mean(grav)), resets=int(resets), distance_m=distance,
-                          frames=len(T_OB), scale_err_median=median_after_skip(
-                              np.zeros(0) if scale_err is None else scale_err),
-                          independent_scale_err_median=median_after_skip(
-                              np.zeros(0) if independent_scale_err is None else independent_scale_err))
+                          frames=len(T_OB), scale_err_median=median_after_skip(scale_err),
+                          independent_scale_err_median=median_after_skip(independent_scale_err),
+                          scale_outliers=count_outliers(scale_err),
+                          independent_scale_outliers=count_outliers(independent_scale_err))

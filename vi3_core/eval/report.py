@@ -16,7 +16,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from vi3_core.eval.chained import SCALE_SKIP_CLIPS, ChainedMetrics
+from vi3_core.eval.chained import SCALE_SKIP_CLIPS, ChainedMetrics, count_outliers
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.types import InitStatus
 
@@ -122,7 +122,8 @@ def chained_summary(run) -> dict:
 def pool_chained(runs: Sequence) -> dict:
     """The chained metrics of several sequences' ``runner.OnlineRun``s: the per-clip scale errors pooled
     (``scale_err_median``, ``independent_scale_err_median``: medians over every sequence's clips after its first
-    ``SCALE_SKIP_CLIPS``), the worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg`` and the total ``resets``."""
+    ``SCALE_SKIP_CLIPS``), the worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg``, the total ``resets`` and
+    the total ``scale_outliers`` / ``independent_scale_outliers``."""
     worst = {key: _finite_max(getattr(r.metrics, key) for r in runs if r.metrics is not None)
              for key in ("ate_m", "drift_pct", "gravity_err_deg")}
     tails = [(r.scale_err[SCALE_SKIP_CLIPS:], r.independent_scale_err[SCALE_SKIP_CLIPS:]) for r in runs]
@@ -132,6 +133,8 @@ def pool_chained(runs: Sequence) -> dict:
         "independent_scale_err_median": _median(v for _, t in tails for v in t),
         **{f"{key}_max": value for key, value in worst.items()},
         "resets": sum(r.metrics.resets for r in runs if r.metrics is not None),
+        "scale_outliers": sum(count_outliers(r.scale_err) for r in runs),
+        "independent_scale_outliers": sum(count_outliers(r.independent_scale_err) for r in runs),
     }
 
 
@@ -144,7 +147,7 @@ def _finite_max(values: Iterable[float]) -> float | None:
 def format_chained(chained: dict) -> str:
     """One table of the chained trajectory's metrics."""
     keys = ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m", "scale_err_median",
-            "independent_scale_err_median")
+            "independent_scale_err_median", "scale_outliers", "independent_scale_outliers")
     return "Chained odom trajectory (yaw + position of the first pose aligned)\n" + _grid(
         list(keys), [[_fmt(chained[k], k) if not isinstance(chained[k], int) else str(chained[k]) for k in keys]])
 
@@ -152,6 +155,6 @@ def format_chained(chained: dict) -> str:
 def format_pooled_chained(pooled: dict) -> str:
     """One table of ``pool_chained``'s metrics."""
     keys = ("scale_err_median", "independent_scale_err_median", "ate_m_max", "drift_pct_max", "gravity_err_deg_max",
-            "resets")
+            "resets", "scale_outliers", "independent_scale_outliers")
     return f"Chained odom trajectories, {pooled['sequences']} sequences pooled\n" + _grid(
         list(keys), [[_fmt(pooled[k], k) if not isinstance(pooled[k], int) else str(pooled[k]) for k in keys]])
