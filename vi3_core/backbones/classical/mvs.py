@@ -89,7 +89,7 @@ def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: t
         # Mean of the best_k best sources that see the point (a surface seen by one source only keeps its score);
         # -1 where no source sees it.
         zncc.masked_fill_(~valid, -2.0)
-        top = zncc.topk(min(best_k, k), dim=0).values
+        top = zncc if best_k >= k else zncc.topk(best_k, dim=0).values  # every source: no selection needed
         seen = top > -1.5
         score = (top * seen).sum(0) / seen.sum(0).clamp_min(1) - 1.0 * ~seen.any(0)  # [D,h,w]
         best = score.argmax(0, keepdim=True)  # [1,h,w]
