@@ -25,7 +25,7 @@ from vi3_core.eval.tum import read_tum
 from vi3_core.init import initialise_clip
 from vi3_core.init.oracle import gt_init_state, oracle_init
 from vi3_core.init.position_fit import fit_positions
-from vi3_core.online import OnlineEstimator
+from vi3_core.online import OnlineEstimator, OnlineOptions
 from vi3_core.online.window import WindowClip, WindowSystem
 from vi3_core.preintegration import accel_bias_jacobians, preintegrate
 from vi3_core.types import AnchorResult, Geometry
@@ -99,21 +99,27 @@ def _scaled(T: np.ndarray, s: float) -> np.ndarray:
     return T
 
 
-def _window(seq, clips, scales, *, bg=None):
-    members = [WindowClip(c.stamps, _scaled(gt_camera_poses(c.gt, c.T_BC), 1.0 / s), np.asarray(c.gt.bg).reshape(3))
-               for c, s in zip(clips, scales)]
+def _window(seq, clips, scales, *, ba=(0.0, 0.0, 0.0)):
+    """The window of ``clips`` with exact camera poses divided by ``scales``, GT gyro bias, the default weights and
+    ``ba`` [3] m/s^2 added to the IMU's accelerometer."""
+    members = [WindowClip(c.stamps, _scaled(gt_camera_poses(c.gt, c.T_BC), 1.0 / s)) for c, s in zip(clips, scales)]
     imu = seq.imu.window(clips[0].stamps[0], clips[-1].stamps[-1])
-    bg = np.asarray(clips[0].gt.bg).reshape(3) if bg is None else bg
-    return WindowSystem(members, imu, bg, clips[0].T_BC, gravity_norm=9.81, ba_weight=1.0, link_weight_s=0.05)
+    imu = replace(imu, accel=imu.accel + np.asarray(ba))
+    o = OnlineOptions()
+    return WindowSystem(members, imu, np.asarray(clips[0].gt.bg).reshape(3), clips[0].T_BC, gravity_norm=9.81,
+                        ba_weight=o.ba_weight, link_weight_s=o.velocity_link_s)
 
 
-def test_window_fit_recovers_each_clips_scale_gravity_and_velocity(seq):
-    """Exact camera positions at a different scale per clip, real IMU noise: every scale, gravity and velocity."""
+@pytest.mark.parametrize("ba", [np.zeros(3), np.array([0.08, -0.05, 0.12])])
+def test_window_fit_recovers_each_clips_scale_gravity_and_velocity(seq, ba):
+    """Exact camera positions at a different scale per clip, real IMU noise, with and without an EuRoC-sized
+    accelerometer bias: every scale, gravity, velocity and the bias."""
     idx = sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[2:9]
     clips = [make_clip(seq, i, with_depth=False) for i in idx]
     scales = np.linspace(0.5, 4.0, len(clips))
-    system = _window(seq, clips, scales)
+    system = _window(seq, clips, scales, ba=ba)
     fit = system.solve()
+    assert np.linalg.norm(fit.ba - ba) < 0.05, fit.ba
     np.testing.assert_allclose(fit.scales, scales, rtol=0.02)  # IMU noise and drifting biases over 5 s
     assert fit.rms.max() < 0.003 and np.all(fit.scale_rel_sigma < 0.01)
     for k, clip in enumerate(clips):
@@ -126,11 +132,10 @@ def test_window_fit_exposes_a_broken_clip_and_an_unobservable_one(seq):
     idx = sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[2:7]
     clips = [make_clip(seq, i, with_depth=False) for i in idx]
     good = _window(seq, clips, np.ones(len(clips))).solve()
-    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC), np.asarray(c.gt.bg).reshape(3)) for c in clips]
+    members = [WindowClip(c.stamps, gt_camera_poses(c.gt, c.T_BC)) for c in clips]
     last = members[-1]
-    twisted = members[:-1] + [WindowClip(last.stamps, _scaled(last.T_wc, 1.0)[:, :, [1, 0, 2, 3]][:, [1, 0, 2, 3]],
-                                         last.bg)]
-    broken = WindowClip(last.stamps, _scaled(last.T_wc, 0.0), last.bg)
+    twisted = members[:-1] + [WindowClip(last.stamps, _scaled(last.T_wc, 1.0)[:, :, [1, 0, 2, 3]][:, [1, 0, 2, 3]])]
+    broken = WindowClip(last.stamps, _scaled(last.T_wc, 0.0))
     imu = seq.imu.window(clips[0].stamps[0], clips[-1].stamps[-1])
     bg = np.asarray(clips[0].gt.bg).reshape(3)
     kw = dict(gravity_norm=9.81, ba_weight=1.0, link_weight_s=0.05)
@@ -252,3 +257,29 @@ def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(seq):
     result = oracle_init(no_bias, geo)
     assert result.ok and abs(result.scale / TRUE_SCALE - 1) < 0.02, result.reason
     assert np.linalg.norm(result.bg - np.asarray(clip.gt.bg).reshape(3)) < 0.005
+
+
+def test_bad_stream_input_is_named_and_does_not_poison_the_window(seq):
+    """A NaN IMU sample is rejected with its clip only; a clip older than the window restarts it; a clip without
+    any IMU is rejected, not a crash."""
+    rng = np.random.default_rng(0)
+    est = OnlineEstimator()
+    idx = sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
+    decisions = []
+    for k in [1, 2, 3, 4, 5, 6, 7, 2]:  # the last clip repeats an old one: out of order
+        clip = make_clip(seq, idx[k], with_depth=False)
+        if k == 4:
+            accel = clip.imu.accel.copy()
+            accel[len(accel) // 2] = np.nan
+            clip = replace(clip, imu=replace(clip.imu, accel=accel))
+        geo = _geometry(clip, 0.003, rng)
+        init = est.initialise(clip, geo)
+        est.update(clip, AnchorResult(geometry=geo.scaled(init.scale) if init.ok else geo, base=geo, init=init,
+                                      mode="init" if init.ok else "none", alpha=init.scale, target=init.target))
+        decisions.append((init.status.value, est.last.describe()))
+    assert decisions[3][0] == "rejected" and "reset" in decisions[3][1]  # the NaN clip
+    assert all(status == "ok" for status, _ in decisions[5:7]) and "reset" not in decisions[5][1], decisions
+    assert "reset: clip out of order" in decisions[-1][1], decisions[-1]
+    empty = make_clip(seq, idx[8], with_depth=False)
+    empty = replace(empty, imu=empty.imu.select(np.zeros(0, dtype=int)), imu_history=None)
+    assert not OnlineEstimator().initialise(empty, _geometry(empty, 0.0, rng)).ok

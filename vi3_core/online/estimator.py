@@ -70,12 +70,15 @@ class OnlineDecision:
 
 
 def _merge_imu(a: ImuSamples | None, b: ImuSamples | None) -> ImuSamples | None:
+    """Both sample sets, sorted, each stamp once, non-finite samples dropped (a gap they leave is caught later)."""
     parts = [p for p in (a, b) if p is not None and len(p)]
     if not parts:
         return None
     imu = ImuSamples.concatenate([replace(p, orientation=None) for p in parts])
+    finite = np.isfinite(imu.t) & np.isfinite(imu.gyro).all(1) & np.isfinite(imu.accel).all(1)
+    imu = imu.select(np.flatnonzero(finite))
     _, idx = np.unique(imu.t, return_index=True)  # sorted, first occurrence of each stamp
-    return imu.select(idx)
+    return imu.select(idx) if len(idx) else None
 
 
 class OnlineEstimator:
@@ -108,14 +111,14 @@ class OnlineEstimator:
 
     def _remember_imu(self, clip: Clip) -> None:
         imu = _merge_imu(_merge_imu(self._imu, clip.imu_history), clip.imu)
-        keep = imu.t >= imu.t[-1] - self.options.imu_keep_s
-        self._imu = imu.select(keep)
+        if imu is not None:
+            self._imu = imu.select(imu.t >= imu.t[-1] - self.options.imu_keep_s)
 
     def _imu_gap(self, t0: float, t1: float) -> str:
         """Why the kept IMU does not cover [t0, t1] ("" when it does)."""
         if self._imu is None:
             return "no IMU"
-        return validate.check_imu(self._imu, np.array([t0, t1]), self.init_options) or ""
+        return validate.check_imu(self._imu.window(t0, t1), np.array([t0, t1]), self.init_options) or ""
 
     def _bridge(self, t1: float) -> tuple[Placement, np.ndarray] | str:
         """The odom state propagated to t1 from its frame nearest before t1: (placement, v_O at t1), or why it
@@ -138,8 +141,8 @@ class OnlineEstimator:
         bridge = pre.propagate(R_k.T @ self.g_O, R_k.T @ v_k)  # in B_k, then rotated into odom
         return Placement(R_k @ bridge.R[1], p_k + R_k @ bridge.p[1]), R_k @ bridge.v[1]
 
-    def _place(self, t1: float) -> Placement:
-        bridged = self._bridge(t1)
+    def _place(self, bridged: tuple[Placement, np.ndarray] | str) -> Placement:
+        """The bridged placement, else the last pose (no IMU over the gap), else the odom origin."""
         if not isinstance(bridged, str):
             return bridged[0]
         if self.state is None:
@@ -154,10 +157,15 @@ class OnlineEstimator:
 
     # ---- initialisation -------------------------------------------------------------------------------------
 
-    def _restart(self, free: InitResult, why: str, seed: WindowClip | None) -> InitResult:
-        """Restart the window (from ``seed`` when the clip's own init is ok); the clip keeps its GT-free result."""
-        self._window = [seed] if seed is not None and free.ok else []
-        self._rms_ref, self._rejects, self._restarted = 0.0, 0, True
+    def _restart(self, free: InitResult, why: str, seed: WindowClip | None = None, bg: np.ndarray | None = None,
+                 T_BC: np.ndarray | None = None) -> InitResult:
+        """Restart the window from ``seed`` when the clip's own initialisation is ok (a clip whose own scale is
+        unobservable may have poses too poor to anchor the window), with its own position residual as the reference
+        of the consistency test; the clip keeps its GT-free result."""
+        self._window, self._rms_ref = [], 0.0
+        if seed is not None and free.ok and not self._imu_gap(float(seed.stamps[0]), float(seed.stamps[-1])):
+            self._window, self._rms_ref = [seed], float(self._system([seed], bg, T_BC).solve().rms[0])
+        self._rejects, self._restarted = 0, True
         return self._decide(free, OnlineDecision(window=len(self._window), reset=why), free)
 
     def _decide(self, result: InitResult, decision: OnlineDecision, free: InitResult) -> InitResult:
@@ -167,6 +175,11 @@ class OnlineEstimator:
         result.diagnostics.update(online=decision.describe(), free_status=free.status.value, free_scale=free.scale)
         return result
 
+    def _system(self, clips: list[WindowClip], bg: np.ndarray, T_BC: np.ndarray) -> WindowSystem:
+        imu = self._imu.window(float(clips[0].stamps[0]), float(clips[-1].stamps[-1]))
+        return WindowSystem(clips, imu, bg, T_BC, gravity_norm=self.init_options.gravity_norm,
+                            ba_weight=self.options.ba_weight, link_weight_s=self.options.velocity_link_s)
+
     def initialise(self, clip: Clip, geometry: Geometry) -> InitResult:
         """The clip's InitResult: from the window fit, or the GT-free one after a restart."""
         o = self.options
@@ -175,67 +188,77 @@ class OnlineEstimator:
         t1 = float(clip.stamps[0])
         gap = t1 - self._last_end if self._last_end is not None else 0.0
         self._last_end = float(clip.stamps[-1])
-        self._pending = (t1, self._place(t1))
+        bridged = self._bridge(t1)
+        self._pending = (t1, self._place(bridged))
         if free.status is InitStatus.REJECTED:
-            return self._restart(free, f"clip rejected ({free.reason})", None)
-        member = WindowClip(np.asarray(clip.stamps, dtype=np.float64), geometry.T_wc, np.asarray(free.bg, np.float64))
+            return self._restart(free, f"clip rejected ({free.reason})")
+        bg = self._filtered_bg(t1, free.bg)
+        member = WindowClip(np.asarray(clip.stamps, dtype=np.float64), np.asarray(geometry.T_wc, np.float64))
         window = [c for c in self._window if c.stamps[0] >= t1 - o.window_s]
         if not window:
-            return self._restart(free, "no window yet" if not self._window else "window expired", member)
+            return self._restart(free, "no window yet" if not self._window else "window expired", member, bg,
+                                 clip.T_BC)
         why = (f"gap of {gap:.2f} s > max_gap_s {o.max_gap_s} s" if gap > o.max_gap_s
+               else f"clip out of order (starts at {t1:.3f} s)" if t1 <= float(window[-1].stamps[-1])
                else self._imu_gap(float(window[0].stamps[0]), float(clip.stamps[-1])))
         if why:
-            return self._restart(free, why, member)
+            return self._restart(free, why, member, bg, clip.T_BC)
 
+        # With the new clip, every clip must still fit about as well as the window's clips did: a clip whose poses
+        # are wrong spreads its error over the whole window. (An outlier that got in anyway makes the next clips
+        # fail too, and max_rejects of those restart the window.)
         clips = [*window, member]
-        bg = self._filtered_bg(t1, free.bg)
-        imu = self._imu.window(float(clips[0].stamps[0]), float(clip.stamps[-1]))
-        system = WindowSystem(clips, imu, bg, clip.T_BC, gravity_norm=self.init_options.gravity_norm,
-                              ba_weight=o.ba_weight, link_weight_s=o.velocity_link_s)
+        system = self._system(clips, bg, clip.T_BC)
         fit = system.solve()
         limit = max(o.residual_ratio * self._rms_ref, o.residual_floor_m)
-        if not fit.rms.max() <= limit:
+        old = float(fit.rms[:-1].max())
+        if not (fit.rms[-1] <= limit and old <= limit):
             self._rejects += 1
             if self._rejects >= o.max_rejects:
-                return self._restart(free, f"{self._rejects} clips in a row inconsistent with the window", member)
-            reason = f"position residual {fit.rms.max():.3f} m > {limit:.3f} m in a window of {len(clips)} clips"
+                return self._restart(free, f"{self._rejects} clips in a row inconsistent with the window",
+                                     member, bg, clip.T_BC)
+            reason = (f"position residual {1e3 * fit.rms[-1]:.1f} mm, the window's up to {1e3 * old:.1f} mm (limit "
+                      f"{1e3 * limit:.1f} mm) in a window of {len(clips)} clips")
             return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {reason}",
-                                           bg=free.bg, diagnostics=dict(free.diagnostics)),
+                                           bg=bg, diagnostics=dict(free.diagnostics)),
                                 OnlineDecision(window=len(clips), rejected={"clip": reason}), free)
         self._rejects = 0
+        rel = float(fit.scale_rel_sigma[-1])  # before the priors: they restate the previous window's data
+        # Only a clip whose scale the window pins down joins it: a poorly determined scale is as often a sign of
+        # wrong poses (which then bend g, v and ba for the clips after it) as of too little motion.
+        if fit.scales[-1] > 0.0 and rel <= o.max_scale_rel_sigma:
+            self._window, self._rms_ref = clips, float(np.median(fit.rms))
 
         # Priors from the odom state, each tested against the window's own estimate at the clip's first frame.
         k = len(clips) - 1
         g_win, v_win = system.state_at(k, fit)
         decision = OnlineDecision(window=len(clips))
-        bridged = self._bridge(t1)
         if not isinstance(bridged, str):
             place, v_O1 = bridged
             g_prior, v_prior = place.R_OB1.T @ self.g_O, place.R_OB1.T @ v_O1
             angle = math.degrees(float(so3.angle_between(g_prior, g_win)))
             dv = float(np.linalg.norm(v_prior - v_win))
             priors = []
-            if angle <= o.gravity_tol_deg:
+            if angle > o.gravity_tol_deg:
+                decision.rejected["g"] = f"{angle:.2f} deg from the window's gravity > {o.gravity_tol_deg} deg"
+            elif o.gravity_weight_s2 > 0.0:
                 priors.append(system.gravity_prior(k, g_prior, o.gravity_weight_s2))
                 decision.used += ("g",)
-            else:
-                decision.rejected["g"] = f"{angle:.2f} deg from the window's gravity > {o.gravity_tol_deg} deg"
-            if dv <= o.velocity_tol_mps:
+            if dv > o.velocity_tol_mps:
+                decision.rejected["v1"] = f"{dv:.2f} m/s from the window's velocity > {o.velocity_tol_mps} m/s"
+            elif o.v1_weight_s > 0.0:
                 priors.append(system.velocity_prior(k, v_prior, o.v1_weight_s))
                 decision.used += ("v1",)
-            else:
-                decision.rejected["v1"] = f"{dv:.2f} m/s from the window's velocity > {o.velocity_tol_mps} m/s"
             if priors:
                 fit = system.solve(tuple(priors))
                 g_win, v_win = system.state_at(k, fit)
-        s, rel = float(fit.scales[-1]), float(fit.scale_rel_sigma[-1])
+        s = float(fit.scales[-1])
         diag = dict(free.diagnostics, free_g=free.g, window_clips=len(clips), window_rms=fit.rms, ba=fit.ba,
                     scale_rel_sigma=rel)
         if not (s > 0.0 and rel <= o.max_scale_rel_sigma):
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable over the online window "
                                            f"(s {s:.3g}, relative sigma {rel:.3g} > {o.max_scale_rel_sigma})",
                                            bg=bg, g=g_win, diagnostics=diag), decision, free)
-        self._window, self._rms_ref = clips, float(np.median(fit.rms))
         target = preintegrate(clip.imu, clip.stamps, bg, fit.ba).propagate(g_win, v_win, clip.T_BC)
         return self._decide(InitResult(InitStatus.OK, f"ok (online window of {len(clips)} clips)", bg=bg, g=g_win,
                                        scale=s, v1=v_win, gravity_source="online_window", target=target,

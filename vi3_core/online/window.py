@@ -7,8 +7,8 @@ gravity, the velocities and the accelerometer bias are much better observed, and
 
 Unknowns live in B0, the body frame at the window's first stamp; the IMU is preintegrated over the whole window
 (paper Eqs. preintegrationRotation / Velocity / Translation, gyro bias bg; alpha and beta from B0, linear in the
-accelerometer bias ba through J_alpha, J_beta). For clip k with first frame f and velocity v_k there (in B0), the
-body displacement to its frame i is, with dtau = tau_i - tau_f,
+accelerometer bias ba, a constant in the IMU frame, through J_alpha, J_beta). For clip k with first frame f and
+velocity v_k there (in B0), the body displacement to its frame i is, with dtau = tau_i - tau_f,
     p_i - p_f = v_k dtau + 0.5 g dtau^2 + (alpha_i - alpha_f - beta_f dtau)
                 + (J_alpha_i - J_alpha_f - J_beta_f dtau) ba,
 and from its backbone camera positions t_ki (its first camera frame, model units) R_B0Bf (s_k a_ki + b_ki), with
@@ -36,11 +36,10 @@ G_COLS, BA_COLS = slice(0, 3), slice(3, 6)
 @dataclass(frozen=True)
 class WindowClip:
     """One clip as the window sees it: stamps [n] s; T_wc [n,4,4] backbone camera poses in its first camera frame
-    (model units); bg [3] rad/s, the clip's own gyro-bias estimate."""
+    (T_wc[0] = I, model units)."""
 
     stamps: np.ndarray
     T_wc: np.ndarray
-    bg: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -53,7 +52,8 @@ class Prior:
 
 @dataclass(frozen=True)
 class WindowFit:
-    """g [3] m/s^2, ba [3] m/s^2, v [K,3] m/s (each clip's first frame) in B0; scales [K]; scale_rel_sigma [K]:
+    """g [3] m/s^2 and v [K,3] m/s (each clip's first frame) in B0, ba [3] m/s^2 (IMU frame); scales [K];
+    scale_rel_sigma [K] (inf where the window cannot determine the scale):
     1-sigma of each scale over the scale (from the position residual); rms [K]: position residual per clip, m."""
 
     g: np.ndarray
@@ -128,13 +128,14 @@ class WindowSystem:
     # ---- solution --------------------------------------------------------------------------------------------
 
     def solve(self, priors: tuple[Prior, ...] = (), *, iterations: int = 3) -> WindowFit:
-        """Least squares with |g| = gravity_norm (tangent-plane Gauss-Newton from the unconstrained solution)."""
+        """Least squares with |g| = gravity_norm (tangent-plane Gauss-Newton, ``iterations`` >= 1 steps from the
+        unconstrained solution)."""
         A = np.vstack([self.A, *(p.A for p in priors)])
         y = np.concatenate([self.y, *(p.y for p in priors)])
         x = np.linalg.lstsq(A, y, rcond=None)[0]
         G = self.gravity_norm
         g = G * x[G_COLS] / np.linalg.norm(x[G_COLS])
-        for _ in range(iterations):
+        for _ in range(max(iterations, 1)):
             B = G * _tangent_basis(g / G)
             A_t = np.hstack([A[:, G_COLS] @ B, A[:, 3:]])
             z = np.linalg.lstsq(A_t, y - A[:, G_COLS] @ g, rcond=None)[0]
@@ -143,9 +144,8 @@ class WindowSystem:
         r = (self.A @ x - self.y)[: self.rows[-1]]
         rms = np.array([np.sqrt(3.0 * np.mean(r[a:b] ** 2)) for a, b in zip(self.rows[:-1], self.rows[1:])])
         sigma2 = float(r @ r) / max(self.rows[-1] - A_t.shape[1], 1)
-        var = sigma2 * np.diag(np.linalg.pinv(A_t.T @ A_t))[-self.K:]
         s = x[-self.K:]
-        sigma = np.sqrt(np.clip(var, 0.0, None))
+        sigma = np.sqrt(sigma2 * _variances(A_t)[-self.K:])
         rel = np.divide(sigma, np.abs(s), out=np.full(self.K, np.inf), where=np.abs(s) > 0)  # no scale: infinite
         return WindowFit(g=g, ba=x[BA_COLS], v=x[6:6 + 3 * self.K].reshape(-1, 3), scales=s, scale_rel_sigma=rel,
                          rms=rms)
@@ -154,6 +154,18 @@ class WindowSystem:
         """(g [3], v [3]) at clip k's first frame, in that body frame."""
         R_f = self.pre.R[self.first[k]]
         return R_f.T @ fit.g, R_f.T @ fit.v[k]
+
+
+def _variances(A: np.ndarray, *, rcond: float = 1e-10) -> np.ndarray:
+    """Diagonal of (A^T A)^-1 [m] for unit residual variance, from the SVD of A with unit-norm columns (so the
+    units of the unknowns do not matter); an unknown that a truncated (unobservable) direction touches gets inf."""
+    norms = np.linalg.norm(A, axis=0)
+    scaled = A / np.where(norms > 0, norms, 1.0)
+    _, sv, Vt = np.linalg.svd(scaled, full_matrices=False)
+    keep = sv > rcond * sv[0]
+    var = ((Vt[keep] / sv[keep, None]) ** 2).sum(0) / np.where(norms > 0, norms, 1.0) ** 2
+    touched = (np.abs(Vt[~keep]) > 1e-6).any(0) | (norms == 0)
+    return np.where(touched, np.inf, var)
 
 
 def _tangent_basis(u: np.ndarray) -> np.ndarray:
