@@ -158,6 +158,13 @@ def test_priors_improve_scale_over_independent_clips_and_chain_stays_level(seq):
     assert m.gravity_err_deg < 1.0 and m.drift_pct < 10.0 and m.resets == 0, m
 
 
+def test_overlapping_clips_share_the_window(seq):
+    """Clips that overlap (hop < clip span) share frames; the window takes them as they come."""
+    _, online, free, decisions = _run(seq, clips=sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding", hop=8))
+    assert not any("reset" in d for d in decisions[1:]) and max(int(d.split()[1]) for d in decisions) >= 8
+    assert np.nanmedian(online[3:]) <= 0.5 * np.nanmedian(free[3:]), (online, free)
+
+
 def test_determinism(seq):
     a, b = _run(seq)[0].trajectory, _run(seq)[0].trajectory
     assert np.array_equal(a.stamps, b.stamps) and np.array_equal(a.T_OB, b.T_OB)

@@ -199,7 +199,7 @@ class OnlineEstimator:
             return self._restart(free, "no window yet" if not self._window else "window expired", member, bg,
                                  clip.T_BC)
         why = (f"gap of {gap:.2f} s > max_gap_s {o.max_gap_s} s" if gap > o.max_gap_s
-               else f"clip out of order (starts at {t1:.3f} s)" if t1 <= float(window[-1].stamps[-1])
+               else f"clip out of order (starts at {t1:.3f} s)" if t1 <= float(window[-1].stamps[0])
                else self._imu_gap(float(window[0].stamps[0]), float(clip.stamps[-1])))
         if why:
             return self._restart(free, why, member, bg, clip.T_BC)
