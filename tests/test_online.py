@@ -48,15 +48,16 @@ def _geometry(clip, noise_m: float, rng: np.random.Generator) -> Geometry:
     return Geometry(T, np.repeat(clip.K[None], n, 0), np.full((n, 4, 4), 1.0), np.ones((n, 4, 4)))
 
 
-def _run(seq, *, noise_m: float = 0.003, clips=None, corrupt_at: int | None = None):
+def _run(seq, *, noise_m: float = 0.003, clips=None, corrupt_at: int | None = None,
+         options: OnlineOptions | None = None):
     """The estimator over sliding clips: (estimator, per-clip online scale errors, GT-free scale errors, decisions)."""
     rng = np.random.default_rng(0)
-    est = OnlineEstimator()
+    est = OnlineEstimator(options=options)
     online, free, decisions = [], [], []
     for k, idx in enumerate(clips or sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")):
         if k == corrupt_at:
             est.state = replace(est.state, v_O=est.state.v_O + np.array([2.0, 0.0, 0.0]))  # a wrong velocity prior
-        clip = make_clip(seq, idx, with_depth=False)
+        clip = make_clip(seq, idx, with_depth=False, history_s=est.options.max_gap_s)  # as the node's buffer
         geo = _geometry(clip, noise_m, rng)
         free.append(abs(initialise_clip(clip, geo).scale / TRUE_SCALE - 1.0))
         init = est.initialise(clip, geo)
@@ -158,6 +159,15 @@ def test_priors_improve_scale_over_independent_clips_and_chain_stays_level(seq):
     assert m.gravity_err_deg < 1.0 and m.drift_pct < 10.0 and m.resets == 0, m
 
 
+def test_a_gap_shorter_than_max_gap_is_bridged_by_the_imu(seq):
+    """Clips dropped by a busy worker (a 2 s hole) keep the window: the IMU bridges the gap, no reset."""
+    clips = [idx for idx in sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
+             if not 4.0 <= seq.stamps[idx[0]] - seq.stamps[0] < 6.0]
+    est, online, free, decisions = _run(seq, clips=clips)
+    assert not any("reset" in d for d in decisions[1:]) and not est.trajectory.resets, decisions
+    assert np.nanmedian(online[3:]) <= 0.5 * np.nanmedian(free[3:]), (online, free)
+
+
 def test_overlapping_clips_share_the_window(seq):
     """Clips that overlap (hop < clip span) share frames; the window takes them as they come."""
     _, online, free, decisions = _run(seq, clips=sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding", hop=8))
@@ -173,7 +183,7 @@ def test_determinism(seq):
 def test_image_gap_resets_and_recovers_within_three_clips(seq):
     clips = [idx for idx in sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
              if not 4.0 <= seq.stamps[idx[0]] - seq.stamps[0] < 6.0]  # 2 s without images
-    est, _, _, decisions = _run(seq, clips=clips)
+    est, _, _, decisions = _run(seq, clips=clips, options=OnlineOptions(max_gap_s=1.0))  # forced: the gap > 1 s
     k = next(i for i, d in enumerate(decisions) if "reset: gap" in d)
     assert decisions[k].startswith("window 1 clips"), decisions[k]  # the window restarted from this clip
     assert k > 0 and any("priors: g,v1" in d for d in decisions[k + 1:k + 4]), decisions

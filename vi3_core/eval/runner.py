@@ -170,7 +170,8 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     evals, decisions, scale_err, independent = [], [], [], []
     for idx in tqdm(clip_indices(len(seq.stamps), options=options) if clips is None else clips,
                     desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
-        clip = make_clip(seq, idx)
+        # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
+        clip = make_clip(seq, idx, history_s=max(2.0, est.options.max_gap_s))
         ev = evaluate_clip(clip, backbone, options=options, indices=idx,
                            init=lambda base, clip=clip: est.initialise(clip, base))
         est.update(clip, ev.result)

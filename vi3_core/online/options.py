@@ -11,11 +11,13 @@ class OnlineOptions:
 
     window_s: s; clips starting within this time before the current clip are fitted jointly with it;
     max_gap_s: s; a longer time between the previous clip's last frame and this clip's first frame restarts the window
-        (the clip falls back to the GT-free initialisation);
+        (the clip falls back to the GT-free initialisation); shorter gaps (clips dropped by a busy worker) are
+        bridged by the IMU, with looser velocity ties;
     ba_weight: weight of the zero-accelerometer-bias prior row (m of position per m/s^2 of bias): small, so that
         a real bias (EuRoC's reach 0.1-0.2 m/s^2) is estimated, yet ba stays determined when the window does not
         rotate (1.0 held a 0.15 m/s^2 bias near zero and shifted the scales by several per cent);
-    velocity_link_s: weight of the IMU tie between consecutive clips' velocities (m of position per m/s);
+    velocity_link_s: weight of the IMU tie between consecutive clips' velocities (m of position per m/s), for clips
+        0.8 s apart (``window.LINK_NOMINAL_S``; scaled by sqrt(0.8 s / their spacing));
     residual_ratio, residual_floor_m: a new clip is inconsistent with the window when a clip's position residual
         exceeds max(residual_ratio * the median residual of the last accepted window, residual_floor_m), metres;
     max_rejects: that many inconsistent clips in a row restart the window from the current clip;
@@ -28,7 +30,7 @@ class OnlineOptions:
     """
 
     window_s: float = 7.0
-    max_gap_s: float = 1.0
+    max_gap_s: float = 3.0
     ba_weight: float = 0.01
     velocity_link_s: float = 0.05
     residual_ratio: float = 4.0
@@ -40,7 +42,7 @@ class OnlineOptions:
     v1_weight_s: float = 0.05
     max_scale_rel_sigma: float = 0.05
     bg_window_s: float = 20.0
-    imu_keep_s: float = 10.0
+    imu_keep_s: float = 12.0
 
     def __post_init__(self) -> None:
         positive = ("window_s", "max_gap_s", "ba_weight", "velocity_link_s", "residual_ratio", "residual_floor_m",

@@ -31,6 +31,7 @@ from vi3_core.preintegration import accel_bias_jacobians, merged_grid, preintegr
 from vi3_core.types import ImuSamples
 
 G_COLS, BA_COLS = slice(0, 3), slice(3, 6)
+LINK_NOMINAL_S = 0.8  # s: consecutive clips of 8 frames at stride 2 from a 20 Hz camera
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,9 @@ class WindowSystem:
     """The position and velocity-link equations of ``clips`` (time-ordered, IMU over their whole span).
 
     imu: samples covering clips[0].stamps[0] .. clips[-1].stamps[-1]; bg [3] rad/s; T_BC [4,4]; ba_weight: weight
-    of the zero-bias prior row (m per m/s^2); link_weight_s: weight of the velocity ties (m per m/s)."""
+    of the zero-bias prior row (m per m/s^2); link_weight_s: weight of the velocity tie between first frames
+    LINK_NOMINAL_S apart (m per m/s), scaled by sqrt(LINK_NOMINAL_S / dt) for other spacings (the IMU's velocity
+    uncertainty grows with the time it integrates, e.g. over a gap left by dropped clips)."""
 
     def __init__(self, clips: list[WindowClip], imu: ImuSamples, bg: np.ndarray, T_BC: np.ndarray, *,
                  gravity_norm: float, ba_weight: float, link_weight_s: float) -> None:
@@ -101,8 +104,9 @@ class WindowSystem:
             A[:, self._v(k)], A[:, self._v(k - 1)] = np.eye(3), -np.eye(3)
             A[:, G_COLS] = -(pre.tau[f1] - pre.tau[f0]) * np.eye(3)
             A[:, BA_COLS] = -(self.J_beta[f1] - self.J_beta[f0])
-            blocks_A.append(link_weight_s * A)
-            blocks_y.append(link_weight_s * (pre.beta[f1] - pre.beta[f0]))
+            w = link_weight_s * np.sqrt(LINK_NOMINAL_S / (pre.tau[f1] - pre.tau[f0]))
+            blocks_A.append(w * A)
+            blocks_y.append(w * (pre.beta[f1] - pre.beta[f0]))
         ba_rows = np.zeros((3, n_x))
         ba_rows[:, BA_COLS] = ba_weight * np.eye(3)
         self.A = np.vstack([*blocks_A, ba_rows])
