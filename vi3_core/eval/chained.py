@@ -56,10 +56,15 @@ def align_yaw_first(T_OB: np.ndarray, T_WB: np.ndarray) -> np.ndarray:
     return (T_OB[:, :3, 3] - T_OB[0, :3, 3]) @ Rz.T + T_WB[0, :3, 3]
 
 
-def median_after_skip(errors: np.ndarray) -> float:
-    """Median of the finite values of per-clip errors [n] after the first SCALE_SKIP_CLIPS (NaN if none)."""
+def scored_tail(errors: np.ndarray) -> np.ndarray:
+    """The per-clip errors [n] that the scale medians score: finite values after the first SCALE_SKIP_CLIPS."""
     tail = np.asarray(errors, dtype=np.float64)[SCALE_SKIP_CLIPS:]
-    tail = tail[np.isfinite(tail)]
+    return tail[np.isfinite(tail)]
+
+
+def median_after_skip(errors: np.ndarray) -> float:
+    """Median of ``scored_tail(errors)`` (NaN if empty)."""
+    tail = scored_tail(errors)
     return float(np.median(tail)) if tail.size else float("nan")
 
 

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from vi3_core.eval.chained import SCALE_SKIP_CLIPS, ChainedMetrics, count_outliers
+from vi3_core.eval.chained import ChainedMetrics, count_outliers, scored_tail
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.types import InitStatus
 
@@ -31,9 +31,13 @@ INIT_LABELS: dict[str, str] = {
 COLUMN_LABELS: dict[str, str] = {"base": "Base", "init": "IMU-init", "cond": "IMU-cond", "ttr": "TTR"}
 
 
-def _median(values: Iterable[float]) -> float | None:
+def _finite(values: Iterable[float | None]) -> np.ndarray:
     arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    arr = arr[np.isfinite(arr)]
+    return arr[np.isfinite(arr)]
+
+
+def _median(values: Iterable[float | None]) -> float | None:
+    arr = _finite(values)
     return float(np.median(arr)) if arr.size else None
 
 
@@ -121,16 +125,15 @@ def chained_summary(run) -> dict:
 
 def pool_chained(runs: Sequence) -> dict:
     """The chained metrics of several sequences' ``runner.OnlineRun``s: the per-clip scale errors pooled
-    (``scale_err_median``, ``independent_scale_err_median``: medians over every sequence's clips after its first
-    ``SCALE_SKIP_CLIPS``), the worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg``, the total ``resets`` and
-    the total ``scale_outliers`` / ``independent_scale_outliers``."""
+    (``scale_err_median``, ``independent_scale_err_median``: medians over every sequence's ``chained.scored_tail``),
+    the worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg``, the total ``resets`` and the total
+    ``scale_outliers`` / ``independent_scale_outliers``."""
     worst = {key: _finite_max(getattr(r.metrics, key) for r in runs if r.metrics is not None)
              for key in ("ate_m", "drift_pct", "gravity_err_deg")}
-    tails = [(r.scale_err[SCALE_SKIP_CLIPS:], r.independent_scale_err[SCALE_SKIP_CLIPS:]) for r in runs]
     return {
         "sequences": len(runs),
-        "scale_err_median": _median(v for t, _ in tails for v in t),
-        "independent_scale_err_median": _median(v for _, t in tails for v in t),
+        "scale_err_median": _median(np.concatenate([scored_tail(r.scale_err) for r in runs])),
+        "independent_scale_err_median": _median(np.concatenate([scored_tail(r.independent_scale_err) for r in runs])),
         **{f"{key}_max": value for key, value in worst.items()},
         "resets": sum(r.metrics.resets for r in runs if r.metrics is not None),
         "scale_outliers": sum(count_outliers(r.scale_err) for r in runs),
@@ -138,9 +141,8 @@ def pool_chained(runs: Sequence) -> dict:
     }
 
 
-def _finite_max(values: Iterable[float]) -> float | None:
-    arr = np.asarray(list(values), dtype=np.float64)
-    arr = arr[np.isfinite(arr)]
+def _finite_max(values: Iterable[float | None]) -> float | None:
+    arr = _finite(values)
     return float(arr.max()) if arr.size else None
 
 
@@ -148,13 +150,16 @@ def format_chained(chained: dict) -> str:
     """One table of the chained trajectory's metrics."""
     keys = ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m", "scale_err_median",
             "independent_scale_err_median", "scale_outliers", "independent_scale_outliers")
-    return "Chained odom trajectory (yaw + position of the first pose aligned)\n" + _grid(
-        list(keys), [[_fmt(chained[k], k) if not isinstance(chained[k], int) else str(chained[k]) for k in keys]])
+    return "Chained odom trajectory (yaw + position of the first pose aligned)\n" + _one_row(chained, keys)
 
 
 def format_pooled_chained(pooled: dict) -> str:
     """One table of ``pool_chained``'s metrics."""
     keys = ("scale_err_median", "independent_scale_err_median", "ate_m_max", "drift_pct_max", "gravity_err_deg_max",
             "resets", "scale_outliers", "independent_scale_outliers")
-    return f"Chained odom trajectories, {pooled['sequences']} sequences pooled\n" + _grid(
-        list(keys), [[_fmt(pooled[k], k) if not isinstance(pooled[k], int) else str(pooled[k]) for k in keys]])
+    return f"Chained odom trajectories, {pooled['sequences']} sequences pooled\n" + _one_row(pooled, keys)
+
+
+def _one_row(values: dict, keys: tuple[str, ...]) -> str:
+    """A one-row table of ``values[k]`` for ``keys`` (integers as they are)."""
+    return _grid(list(keys), [[str(values[k]) if isinstance(values[k], int) else _fmt(values[k], k) for k in keys]])
