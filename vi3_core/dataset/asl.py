@@ -4,10 +4,21 @@ Layout: ``cam0/data/<ns>.png`` (mono8) + ``cam0/data.csv`` + ``cam0/sensor.yaml`
 ``imu0/sensor.yaml``, ``state_groundtruth_estimate0/data.csv`` (p, q as w x y z, v, gyro bias, accel bias, all
 in EuRoC's column order) + ``sensor.yaml``, ``body.yaml``.
 
-Extra folder (generated sequences only), ``depth0/``: exact ground-truth z-depth of the *undistorted* cam0
-image (pinhole intrinsics ``calib.undistorter().K``), one 16-bit PNG per cam0 frame, ``data/<ns>.png``,
-value = depth in metres x ``DEPTH_SCALE`` (0.25 mm steps, up to 16.38 m), 0 = no depth; listed in
-``depth0/data.csv``; ``depth0/sensor.yaml`` restates this.
+Extra folder, ``depth0/``: ground-truth z-depth of cam0 frames (metres along the optical axis, per pixel). Read in
+any of these forms (``read_depth_source``):
+
+- what ``vi3 make-bag`` writes: one 16-bit PNG per cam0 frame, ``data/<ns>.png`` listed in ``depth0/data.csv``,
+  value = depth in metres x ``DEPTH_SCALE`` (0.25 mm steps, up to 16.38 m), 0 = no depth, on the *undistorted*
+  cam0 grid (pinhole intrinsics ``calib.undistorter().K``); ``depth0/sensor.yaml`` states ``depth_scale`` and
+  ``undistorted_K``;
+- float depth: ``data/<ns>.npy`` (2-D float array, metres; 0, negative or non-finite = no depth);
+- 16-bit PNG in millimetres (TUM/ETH3D-style datasets): ``data/<ns>.png`` without a ``sensor.yaml``, or with a
+  ``sensor.yaml`` whose ``depth_scale`` (units per metre, e.g. 5000 for TUM RGB-D) says otherwise.
+
+Files are listed in ``depth0/data.csv`` or, without it, found by name (``<ns>`` = the cam0 frame's stamp). Depth is
+on the raw (distorted) cam0 grid unless ``sensor.yaml`` gives ``undistorted_K``; raw-grid depth is carried onto the
+undistorted grid by ``Sequence.gt_depth`` (nearest neighbour through the undistortion map). A ``depth0/`` that cannot
+be used leaves the sequence without depth and says why in ``Sequence.depth_gt`` ("unreadable: ...").
 """
 
 from __future__ import annotations
@@ -25,7 +36,9 @@ from vi3_core.errors import DataError
 from vi3_core.sim.imu import ImuNoise
 from vi3_core.types import ImuSamples
 
-DEPTH_SCALE = 4000.0
+DEPTH_SCALE = 4000.0  # units per metre of the depth PNGs this project writes
+PNG_MM_SCALE = 1000.0  # units per metre of 16-bit depth PNGs without a depth0/sensor.yaml (millimetres)
+DEPTH_SUFFIXES = (".npy", ".png")
 
 CAM_HEADER = "#timestamp [ns],filename"
 IMU_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
@@ -82,6 +95,93 @@ def _read_png(path: Path, flags: int) -> np.ndarray:
     return img
 
 
+def read_depth_file(path: Path, scale: float = PNG_MM_SCALE) -> np.ndarray:
+    """One depth map -> [H,W] float32 metres, NaN where there is no depth: ``.npy`` (2-D float array, metres) or
+    16-bit ``.png`` (``scale`` units per metre; 0 = no depth)."""
+    if path.suffix == ".npy":
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise DataError(f"{path}: not a readable .npy array ({err})") from None
+        if raw.ndim == 3 and raw.shape[2] == 1:
+            raw = raw[..., 0]
+        if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.floating):
+            raise DataError(f"{path}: depth must be a 2-D float array in metres, got {raw.dtype} {raw.shape}")
+        depth = raw.astype(np.float32)
+    elif path.suffix == ".png":
+        raw = _read_png(path, cv2.IMREAD_UNCHANGED)
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise DataError(f"{path}: depth PNGs must be single-channel 16-bit, got {raw.dtype} {raw.shape}")
+        depth = raw.astype(np.float32) / np.float32(scale)
+    else:
+        raise DataError(f"{path}: unsupported depth file type {path.suffix!r} (use {' or '.join(DEPTH_SUFFIXES)})")
+    with np.errstate(invalid="ignore"):
+        depth[~(np.isfinite(depth) & (depth > 0))] = np.nan
+    return depth
+
+
+def _depth_meta(path: Path, K_undistorted: np.ndarray) -> tuple[float, bool]:
+    """(PNG units per metre, whether the depth is on the raw grid) from ``depth0/sensor.yaml`` (absent: millimetres
+    on the raw grid)."""
+    if not path.is_file():
+        return PNG_MM_SCALE, True
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        raise DataError(f"{path}: not valid YAML ({err})") from None
+    if not isinstance(doc, dict):
+        raise DataError(f"{path}: expected a YAML mapping, got {type(doc).__name__}")
+    try:
+        scale = float(doc.get("depth_scale", PNG_MM_SCALE))
+    except (TypeError, ValueError):
+        scale = float("nan")
+    if not (np.isfinite(scale) and scale > 0):
+        raise DataError(f"{path}: depth_scale must be a positive number of units per metre, got "
+                        f"{doc.get('depth_scale')!r}")
+    if "undistorted_K" not in doc:
+        return scale, True
+    K = np.asarray(doc["undistorted_K"], dtype=np.float64).reshape(-1)
+    if K.size != 9 or not np.allclose(K.reshape(3, 3), K_undistorted, rtol=1e-6, atol=1e-6):
+        raise DataError(f"{path}: undistorted_K {K.tolist()} is not cam0's undistorted intrinsics "
+                        f"{np.asarray(K_undistorted).reshape(-1).tolist()}")
+    return scale, False
+
+
+def read_depth_source(depth_dir: Path, ns: np.ndarray, calib: CameraCalib) -> tuple[list[Path | None], float, bool,
+                                                                                     str]:
+    """The depth folder of cam0 frames ``ns`` [N] int64: (file per frame or None, PNG units per metre, whether on
+    the raw grid, a description). Reads the first file to check it. Raises DataError naming why the folder cannot
+    be used."""
+    scale, raw_grid = _depth_meta(depth_dir / "sensor.yaml", calib.undistorter().K)
+    data = depth_dir / "data"
+    if (depth_dir / "data.csv").is_file():
+        d_ns, cells = read_csv(depth_dir / "data.csv", columns=2)
+        by_ns = {int(k): data / name for k, name in zip(d_ns, cells[:, 0])}
+    elif data.is_dir():
+        found = [f for f in data.iterdir() if f.suffix in DEPTH_SUFFIXES and f.stem.isdigit()]
+        by_ns = {int(f.stem): f for f in found}
+        if len(by_ns) != len(found):
+            raise DataError(f"{data}: several depth files for one stamp (both .npy and .png?)")
+    else:
+        raise DataError(f"{depth_dir}: neither data.csv nor a data/ folder")
+    files = [by_ns.get(k) for k in ns.tolist()]
+    have = [f for f in files if f is not None]
+    if not have:
+        raise DataError(f"{depth_dir}: none of its {len(by_ns)} depth files is named after a cam0 stamp "
+                        f"(expected data/<ns>{' or data/<ns>'.join(DEPTH_SUFFIXES)})")
+    suffixes = {f.suffix for f in have}
+    if suffixes - set(DEPTH_SUFFIXES):
+        raise DataError(f"{depth_dir}: unsupported depth file types {sorted(suffixes - set(DEPTH_SUFFIXES))}")
+    first = read_depth_file(have[0], scale)
+    w, h = calib.size
+    if first.shape != (h, w):
+        raise DataError(f"{have[0]}: depth map is {first.shape[1]}x{first.shape[0]}, cam0 images are {w}x{h}")
+    kinds = " and ".join(("float .npy (m)" if x == ".npy" else f"16-bit PNG ({scale:g} per m)")
+                         for x in sorted(suffixes))
+    grid = "raw (distorted) grid, undistorted by nearest neighbour" if raw_grid else "undistorted grid"
+    return files, scale, raw_grid, f"{kinds} on the {grid}; {len(have)} of {len(ns)} frames"
+
+
 def read_imu(mav0: Path) -> tuple[np.ndarray, ImuSamples]:
     """imu0/data.csv -> (ns [M] int64, ImuSamples)."""
     path = mav0 / "imu0" / "data.csv"
@@ -112,27 +212,33 @@ def read_asl(path, *, camera: str = "cam0") -> Sequence:
     order = np.argsort(ns, kind="stable")
     ns, files = ns[order], [files[i] for i in order]
     imu_ns, imu = read_imu(mav0)
-    depth_dir = mav0 / "depth0"
-    load_depth = None
-    if (depth_dir / "data.csv").is_file():
-        d_ns, d_cells = read_csv(depth_dir / "data.csv", columns=2)
-        by_ns = dict(zip(d_ns.tolist(), d_cells[:, 0].tolist()))
-        depth_files = [depth_dir / "data" / by_ns[k] if k in by_ns else None for k in ns.tolist()]
-
-        def load_depth(i: int) -> np.ndarray | None:
-            if depth_files[i] is None:
-                return None
-            raw = _read_png(depth_files[i], cv2.IMREAD_UNCHANGED).astype(np.float32)
-            raw[raw == 0] = np.nan
-            return raw / np.float32(DEPTH_SCALE)
+    load_depth, raw_grid, depth_gt = None, False, "none"
+    if (mav0 / "depth0").is_dir():
+        try:
+            depth_files, scale, raw_grid, depth_gt = read_depth_source(mav0 / "depth0", ns, calib)
+        except DataError as err:
+            depth_gt = f"unreadable: {err}"
+        else:
+            def load_depth(i: int) -> np.ndarray | None:
+                return None if depth_files[i] is None else read_depth_file(depth_files[i], scale)
 
     def load_image(i: int) -> np.ndarray:
         img = _read_png(files[i], cv2.IMREAD_UNCHANGED)
         return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
 
-    return Sequence(name=mav0.resolve().parent.name, stamps=ns * 1e-9, imu=imu, calib=calib,
-                    gt=read_groundtruth(mav0), load_image=load_image, load_depth=load_depth, stamps_ns=ns,
-                    imu_ns=imu_ns)
+    return Sequence(name=sequence_name(mav0), stamps=ns * 1e-9, imu=imu, calib=calib, gt=read_groundtruth(mav0),
+                    load_image=load_image, load_depth=load_depth, stamps_ns=ns, imu_ns=imu_ns,
+                    depth_on_raw_grid=raw_grid, depth_gt=depth_gt)
+
+
+def sequence_name(mav0: Path) -> str:
+    """The name of the sequence in ``mav0`` (the folder holding ``cam0/``): that folder or the first one above it
+    not called ``asl`` or ``mav0`` (``OUT/room/asl/mav0`` -> ``room``)."""
+    mav0 = mav0.resolve()
+    for folder in (mav0, *mav0.parents):
+        if folder.name not in ("asl", "mav0"):
+            return folder.name or "mav0"
+    return "mav0"
 
 
 # ----------------------------------------------------------------------------------------------- writing

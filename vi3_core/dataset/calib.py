@@ -39,9 +39,12 @@ class Undistorter:
     map_x: np.ndarray
     map_y: np.ndarray
 
-    def apply(self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-        """Undistorted copy of ``image`` [H,W] or [H,W,C] (same dtype)."""
-        return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT)
+    def apply(self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR,
+              border_value: float = 0.0) -> np.ndarray:
+        """Undistorted copy of ``image`` [H,W] or [H,W,C] (same dtype); pixels that map outside the raw image get
+        ``border_value``."""
+        return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=border_value)
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -75,7 +76,10 @@ class Sequence:
     stamps: [N] cam0 stamps, float64 s; stamps_ns: [N] the same stamps as recorded, int64 ns; imu: all IMU
     samples (imu_ns: their int64 ns stamps); calib: cam0 calibration (None when the source has none);
     gt: ground-truth track (None when absent). Images and depth are loaded on demand by ``load_image(i)``
-    (raw mono8 [H,W] uint8, as recorded) and ``load_depth(i)`` (z-depth of the undistorted image, or None).
+    (raw mono8 [H,W] uint8, as recorded) and ``load_depth(i)`` ([H,W] float32 z-depth in metres, NaN invalid, or
+    None for a frame without depth): on the undistorted image's grid, or on the raw (distorted) image's grid when
+    ``depth_on_raw_grid``. depth_gt: what ground-truth depth the source has, for reports: "none", a description of
+    the format read, or "unreadable: <why>" when a depth folder exists but cannot be used.
     """
 
     name: str
@@ -87,6 +91,8 @@ class Sequence:
     load_depth: Callable[[int], np.ndarray | None] | None = field(default=None, repr=False)
     stamps_ns: np.ndarray | None = None
     imu_ns: np.ndarray | None = None
+    depth_on_raw_grid: bool = False
+    depth_gt: str = "none"
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -96,8 +102,16 @@ class Sequence:
         return self.load_image(int(i))
 
     def gt_depth(self, i: int) -> np.ndarray | None:
-        """[H,W] float32 z-depth (m) of the UNDISTORTED image of frame i, NaN where invalid; None if unknown."""
-        return None if self.load_depth is None else self.load_depth(int(i))
+        """[H,W] float32 z-depth (m) of the UNDISTORTED image of frame i, NaN where invalid; None if unknown.
+
+        Depth recorded per raw pixel is carried through the undistortion map by nearest neighbour (each undistorted
+        pixel takes the raw pixel its ray falls in: z-depth belongs to the ray, and no value is invented)."""
+        depth = None if self.load_depth is None else self.load_depth(int(i))
+        if depth is None or not self.depth_on_raw_grid:
+            return depth
+        if self.calib is None:
+            raise DataError(f"sequence {self.name!r} has no camera calibration; cannot undistort its depth")
+        return self.calib.undistorter().apply(depth, interpolation=cv2.INTER_NEAREST, border_value=np.nan)
 
 
 def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0) -> Clip:
@@ -119,7 +133,10 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
     if seq.gt is not None and seq.gt.covers(stamps):
         depth = None
         if with_depth and seq.load_depth is not None:
-            depth = np.stack([seq.gt_depth(i) for i in idx])
+            maps = [seq.gt_depth(i) for i in idx]
+            shape = next((d.shape for d in maps if d is not None), None)
+            if shape is not None:  # a frame without depth is all invalid
+                depth = np.stack([np.full(shape, np.nan, np.float32) if d is None else d for d in maps])
         gt = seq.gt.at(stamps, depth=depth)
     history = seq.imu.window(stamps[0] - history_s, stamps[-1], margin=1)
     return Clip(stamps=stamps, images=images, K=und.K.copy(), T_BC=seq.calib.T_BC.copy(), imu=imu, gt=gt,
