@@ -175,13 +175,43 @@ def test_gt_without_biases_gives_nan_bias_error_not_a_crash() -> None:
     assert m.gravity_err_deg == pytest.approx(0.0, abs=1e-9) and m.v1_mag_err == pytest.approx(0.0, abs=1e-12)
 
 
-def test_chained_scale_summaries_skip_the_first_clips_and_count_confident_wrong_scales():
-    from vi3_core.eval.chained import SCALE_SKIP_CLIPS, chained_metrics
+def test_chained_scale_median_skips_the_first_clips():
+    from vi3_core.eval.chained import SCALE_SKIP_CLIPS, median_after_skip
 
-    T = np.repeat(np.eye(4)[None], 3, 0)
-    T[:, 0, 3] = [0.0, 1.0, 2.0]
     err = np.array([0.9] * SCALE_SKIP_CLIPS + [0.01, np.nan, 0.03, 0.2])
-    m = chained_metrics(T, T, resets=0, scale_err=err, independent_scale_err=err * 2)
-    assert m.scale_err_median == 0.03 and m.independent_scale_err_median == 0.06  # the 0.9s of the first clips skipped
-    assert m.scale_outliers == SCALE_SKIP_CLIPS + 1 and m.independent_scale_outliers == SCALE_SKIP_CLIPS + 1
-    assert m.ate_m == 0.0 and m.drift_pct == 0.0 and m.distance_m == 2.0
+    assert median_after_skip(err) == 0.03 and np.isnan(median_after_skip(err[:SCALE_SKIP_CLIPS]))
+
+
+def _line(n: int, x0: float = 0.0) -> np.ndarray:
+    """[n,4,4] body poses moving 1 m per frame along x, level."""
+    T = np.repeat(np.eye(4)[None], n, 0)
+    T[:, 0, 3] = x0 + np.arange(n, dtype=np.float64)
+    return T
+
+
+def test_chained_trajectory_is_scored_per_segment():
+    """A jump at a segment start (the estimator placed a clip without a trustworthy IMU bridge) is not drift: each
+    segment is aligned on its own first pose; a jump inside a segment is."""
+    from vi3_core.eval.chained import chained_metrics, segment_bounds
+
+    stamps = 0.1 * np.arange(10)
+    T_WB = _line(10)
+    T_OB = _line(10)
+    T_OB[5:, 1, 3] += 2.0  # the estimate jumps 2 m sideways at frame 5, then tracks again
+    whole = chained_metrics(T_OB, T_WB, stamps=stamps)
+    split = chained_metrics(T_OB, T_WB, stamps=stamps, segment_starts=[stamps[5]])
+    assert len(whole.segments) == 1 and whole.drift_pct == pytest.approx(100 * 2.0 / 9.0)
+    assert whole.ate_m == pytest.approx(np.sqrt(5 * 4.0 / 10))
+    assert len(split.segments) == 2 and split.ate_m == pytest.approx(0.0, abs=1e-12)
+    assert [(s.t0, s.t1, s.frames, s.distance_m) for s in split.segments] == [(0.0, 0.4, 5, 4.0),
+                                                                            (stamps[5], stamps[9], 5, 4.0)]
+    assert split.distance_m == 8.0 and split.drift_pct == pytest.approx(0.0, abs=1e-12)
+    # a segment that drifts: 1 m of error at its end over its 4 m
+    T_OB[9, 0, 3] += 1.0
+    m = chained_metrics(T_OB, T_WB, stamps=stamps, segment_starts=[stamps[5]])
+    assert m.segments[1].drift_pct == pytest.approx(25.0) and m.segments[0].drift_pct == pytest.approx(0.0)
+    assert m.drift_pct == pytest.approx(100 * 1.0 / 8.0) and m.ate_m == pytest.approx(np.sqrt(1.0 / 10))
+    d = m.as_dict()
+    assert d["segments"] == 2 and len(d["per_segment"]) == 2 and d["per_segment"][1]["drift_pct"] == 25.0
+    # starts at the first stamp or outside the trajectory add no segment
+    assert segment_bounds(stamps, [0.0, 5.0]) == [slice(0, 10)]

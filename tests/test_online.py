@@ -154,9 +154,9 @@ def test_priors_improve_scale_over_independent_clips_and_chain_stays_level(seq):
     assert np.nanmedian(online[after]) <= 0.5 * np.nanmedian(free[after]), (online, free)
     traj = est.trajectory
     T_WB = seq.gt.at(traj.stamps).T_WB
-    m = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets))
+    m = chained_metrics(traj.T_OB, T_WB, stamps=traj.stamps, segment_starts=traj.resets)
     assert len(traj.stamps) == len(np.unique(traj.stamps)) and np.all(np.diff(traj.stamps) > 0)
-    assert m.gravity_err_deg < 1.0 and m.drift_pct < 10.0 and m.resets == 0, m
+    assert m.gravity_err_deg < 1.0 and m.drift_pct < 10.0 and len(m.segments) == 1 and not traj.resets, m
 
 
 def test_a_gap_shorter_than_max_gap_is_bridged_by_the_imu(seq):
@@ -237,8 +237,9 @@ def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
     assert vi3_main([*common, "--export-tum", str(tmp_path)]) == 0
     obj = json.loads(capsys.readouterr().out)
     chained = obj["chained"]
-    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets", "scale_err_median", "independent_scale_err_median",
-            "scale_outliers", "independent_scale_outliers"} <= set(chained) and chained["resets"] == 0
+    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets", "segments", "scale_err_median",
+            "independent_scale_err_median", "independent_claimed_outliers"} <= set(chained)
+    assert chained["resets"] == 0 and chained["segments"] == 1 and "claimed_outliers" in obj
     assert all(np.isfinite(chained[k]) for k in ("ate_m", "drift_pct", "gravity_err_deg"))
     assert chained["scale_err_median"] is None  # 2 clips: none after the first 3
     assert len(chained["decisions"]) == obj["n_clips"] == 2 and obj["vi3"]["scale_traj"] is not None
@@ -261,7 +262,8 @@ def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
     pooled = obj["pooled"]["chained"]
     assert pooled["sequences"] == 2 and pooled["resets"] == 0
     assert pooled["drift_pct_max"] == max(s["chained"]["drift_pct"] for s in obj["sequences"])
-    assert pooled["scale_outliers"] == sum(s["chained"]["scale_outliers"] for s in obj["sequences"])
+    assert pooled["independent_claimed_outliers"]["count"] == sum(
+        s["chained"]["independent_claimed_outliers"]["count"] for s in obj["sequences"])
     assert all((tmp_path / f"eval_{n}.png").is_file() and (tmp_path / "tum" / n / "odom_vi3.txt").is_file()
                for n in names)
 

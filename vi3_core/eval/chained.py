@@ -1,12 +1,17 @@
 """Metrics of the chained odom trajectory (``vi3_core.online``) against ground truth.
 
 Gravity fixes roll and pitch of odom, so only the yaw and the position of the first pose are aligned (4 DoF, no
-scale): ATE is the RMS position error after that alignment, drift the final position error per metre travelled
-(ground-truth path length), and the gravity error the mean angle between the up axis of odom and the true one,
-both seen from the body. The per-clip scale errors |Scale (Traj.) - 1| of the chained run and of the same clips'
-own GT-free initialisation (what the paper's per-clip pipeline outputs, computed in the same run) are compared by
-their medians after the first ``SCALE_SKIP_CLIPS`` clips, while the window fills, and by how many clips (all of
-them) claim a scale more than ``SCALE_OUTLIER`` off: a confident wrong scale, the failure a flight stack cares about.
+scale). The trajectory is scored per **segment**: the estimator starts a new one (``Trajectory.resets``, the first
+stamp of each) wherever it placed a clip without a trustworthy IMU bridge from the one before, so positions across
+that boundary are not comparable; each segment is aligned on its own first pose. Per segment, ATE is the RMS
+position error after that alignment and drift the final position error per metre travelled (its ground-truth path
+length); overall, ATE is the RMS over every frame of the per-segment errors and drift the segments' final errors
+summed per metre of their summed paths. The gravity error is the mean angle between the up axis of odom and the
+true one, seen from the body.
+
+The per-clip scale errors |Scale (Traj.) - 1| of the chained run and of the same clips' own GT-free initialisation
+are compared by their medians after the first ``SCALE_SKIP_CLIPS`` clips, while the window fills
+(``median_after_skip``); how many claimed clips are far off is ``vi3_core.eval.claims``' job.
 """
 
 from __future__ import annotations
@@ -20,31 +25,38 @@ from vi3_core import so3
 from vi3_core.errors import DataError
 
 SCALE_SKIP_CLIPS = 3
-SCALE_OUTLIER = 0.1
-NO_CLIPS = np.zeros(0)
+
+
+@dataclass(frozen=True)
+class SegmentMetrics:
+    """One segment of the chained trajectory: t0, t1: its first and last stamps, s; frames: poses; distance_m: GT
+    path length, m; ate_m: m; drift_pct: % of distance_m (NaN when the segment does not move)."""
+
+    t0: float
+    t1: float
+    frames: int
+    distance_m: float
+    ate_m: float
+    drift_pct: float
 
 
 @dataclass(frozen=True)
 class ChainedMetrics:
-    """ate_m: m; drift_pct: % of distance_m (GT path length, m); gravity_err_deg: deg; resets: state resets
-    after the first clip; frames: poses compared; scale_err_median: median |Scale (Traj.) - 1| of the chained
-    clips after the first SCALE_SKIP_CLIPS; independent_scale_err_median: the same for the clips' own GT-free
-    initialisation (NaN where no clip has a value); scale_outliers, independent_scale_outliers: clips whose
-    |Scale (Traj.) - 1| > SCALE_OUTLIER, chained and independent."""
+    """The whole trajectory: ate_m: m (RMS over every frame of the per-segment aligned errors); drift_pct: the
+    segments' final errors summed, in % of distance_m (their GT path lengths summed, m); gravity_err_deg: deg;
+    frames: poses compared; segments: per segment, in time order."""
 
     ate_m: float
     drift_pct: float
     gravity_err_deg: float
-    resets: int
     distance_m: float
     frames: int
-    scale_err_median: float = float("nan")
-    independent_scale_err_median: float = float("nan")
-    scale_outliers: int = 0
-    independent_scale_outliers: int = 0
+    segments: tuple[SegmentMetrics, ...]
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        """The fields, with ``segments`` the segment count and ``per_segment`` the list of segment dicts."""
+        out = {k: v for k, v in asdict(self).items() if k != "segments"}
+        return {**out, "segments": len(self.segments), "per_segment": [asdict(s) for s in self.segments]}
 
 
 def align_yaw_first(T_OB: np.ndarray, T_WB: np.ndarray) -> np.ndarray:
@@ -68,28 +80,39 @@ def median_after_skip(errors: np.ndarray) -> float:
     return float(np.median(tail)) if tail.size else float("nan")
 
 
-def count_outliers(errors: np.ndarray) -> int:
-    """Clips [n] whose scale error exceeds SCALE_OUTLIER (NaN: no scale claimed, not counted)."""
-    errors = np.asarray(errors, dtype=np.float64)
-    return int((errors[np.isfinite(errors)] > SCALE_OUTLIER).sum())
+def segment_bounds(stamps: np.ndarray, starts) -> list[slice]:
+    """The frames of each segment of a trajectory with ``stamps`` [N] s, new segments beginning at the stamps
+    ``starts`` (the first frame at or after each; the first segment begins at frame 0)."""
+    stamps = np.asarray(stamps, dtype=np.float64)
+    cuts = np.searchsorted(stamps, np.asarray(list(starts), dtype=np.float64) - 1e-9)
+    edges = np.unique(np.concatenate([[0], cuts[(cuts > 0) & (cuts < len(stamps))], [len(stamps)]]))
+    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, resets: int, scale_err: np.ndarray = NO_CLIPS,
-                    independent_scale_err: np.ndarray = NO_CLIPS) -> ChainedMetrics:
-    """T_OB, T_WB: [N,4,4] estimated (odom) and GT (world, z up) body poses at the same stamps, N >= 2;
-    scale_err, independent_scale_err: [n_clips] per-clip |Scale (Traj.) - 1| (NaN: no value), in clip order."""
-    if len(T_OB) != len(T_WB) or len(T_OB) < 2:
-        raise DataError(f"chained metrics need >= 2 matching poses, got {len(T_OB)} estimated and {len(T_WB)} GT")
-    p = align_yaw_first(T_OB, T_WB)
-    err = np.linalg.norm(p - T_WB[:, :3, 3], axis=1)
+def _segment(stamps: np.ndarray, T_OB: np.ndarray, T_WB: np.ndarray) -> tuple[SegmentMetrics, np.ndarray]:
+    err = np.linalg.norm(align_yaw_first(T_OB, T_WB) - T_WB[:, :3, 3], axis=1)
     distance = float(np.linalg.norm(np.diff(T_WB[:, :3, 3], axis=0), axis=1).sum())
+    return SegmentMetrics(t0=float(stamps[0]), t1=float(stamps[-1]), frames=len(stamps), distance_m=distance,
+                          ate_m=float(np.sqrt((err**2).mean())),
+                          drift_pct=100.0 * float(err[-1]) / distance if distance > 0 else float("nan")), err
+
+
+def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, stamps: np.ndarray, segment_starts=()) -> ChainedMetrics:
+    """T_OB, T_WB: [N,4,4] estimated (odom) and GT (world, z up) body poses at ``stamps`` [N] s, N >= 2;
+    segment_starts: stamps at which a new segment begins (``Trajectory.resets``)."""
+    stamps = np.asarray(stamps, dtype=np.float64)
+    if not (len(T_OB) == len(T_WB) == len(stamps)) or len(T_OB) < 2:
+        raise DataError(f"chained metrics need >= 2 matching poses and stamps, got {len(T_OB)} estimated, "
+                        f"{len(T_WB)} GT and {len(stamps)} stamps")
+    parts = [_segment(stamps[s], T_OB[s], T_WB[s]) for s in segment_bounds(stamps, segment_starts)]
+    segments = tuple(seg for seg, _ in parts)
+    err = np.concatenate([e for _, e in parts])
+    distance = sum(seg.distance_m for seg in segments)
+    end_error = sum(float(e[-1]) for _, e in parts)
     up_est = T_OB[:, 2, :3]  # odom z axis in the body frame: row 2 of R_OB
     up_gt = T_WB[:, 2, :3]
     grav = np.degrees(so3.angle_between(up_est, up_gt))
     return ChainedMetrics(ate_m=float(np.sqrt((err**2).mean())),
-                          drift_pct=float(100.0 * err[-1] / distance) if distance > 0 else float("nan"),
-                          gravity_err_deg=float(np.mean(grav)), resets=int(resets), distance_m=distance,
-                          frames=len(T_OB), scale_err_median=median_after_skip(scale_err),
-                          independent_scale_err_median=median_after_skip(independent_scale_err),
-                          scale_outliers=count_outliers(scale_err),
-                          independent_scale_outliers=count_outliers(independent_scale_err))
+                          drift_pct=100.0 * end_error / distance if distance > 0 else float("nan"),
+                          gravity_err_deg=float(np.mean(grav)), distance_m=distance, frames=len(T_OB),
+                          segments=segments)

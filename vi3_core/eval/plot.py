@@ -3,7 +3,8 @@
 Colours follow the paper's figures: GT black, base 3DFM red, IMU (metric inertial target) blue, VI3 green.
 "Top-down" is the plane orthogonal to gravity: each clip is drawn in its first camera frame C1 rotated so that
 the vertical axis is the GT gravity direction (``ClipEval.down_c1``) and the horizontal x axis is the first
-camera's viewing direction projected onto the ground plane.
+camera's viewing direction projected onto the ground plane. A companion figure (``save_sigma_plot``) shows the
+claimed clips' scale errors against their scale sigmas.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from matplotlib.figure import Figure
 
 from vi3_core import so3
 from vi3_core.camera import backproject as backproject_depth
+from vi3_core.eval.claims import NO_SIGMA, Claims
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.types import Geometry
 
@@ -92,6 +94,53 @@ def save_plot(path: str | Path, evals: Sequence[ClipEval], *, max_clips: int = 3
         draw_clip(axes[row, 0], axes[row, 1], evals[k])
     if title:
         fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="png")
+    return path
+
+
+def sigma_plot_path(png: str | Path) -> Path:
+    """The sigma plot that accompanies the plot ``png``: ``<stem>_sigma.png`` beside it."""
+    png = Path(png)
+    return png.with_name(f"{png.stem}_sigma{png.suffix or '.png'}")
+
+
+def draw_sigma(ax, series: dict[str, Claims]) -> None:
+    """Draw each claimed clip's scale error |Scale (Traj.) - 1| against its relative scale sigma on ``ax``, log-log,
+    one marker per series (e.g. "chained", "own init"), with the lines error = sigma and error = 2 sigma: a
+    calibrated sigma has about 95 % of the points below the 2-sigma line. Without any sigma, the axes say so."""
+    points = {}
+    for name, c in series.items():
+        has = np.isfinite(c.rel_sigma) & (c.rel_sigma > 0)
+        points[name] = (c.rel_sigma[has], c.errors[has])
+    sigmas = np.concatenate([np.zeros(0), *(s for s, _ in points.values())])
+    if sigmas.size:
+        floor = 1e-5  # an exact scale (error 0) still gets a point, at the bottom of the log axis
+        for (name, (s, e)), marker in zip(points.items(), "os^Dv"):
+            if s.size:
+                ax.scatter(s, np.maximum(e, floor), s=14, marker=marker, alpha=0.7, label=f"{name} ({s.size})")
+        x = np.geomspace(sigmas.min() / 2.0, sigmas.max() * 2.0, 50)
+        ax.plot(x, x, color="black", lw=1.0, label="error = sigma")
+        ax.plot(x, 2.0 * x, color="black", lw=1.0, ls="--", label="error = 2 sigma")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.legend(fontsize=8, loc="upper left")
+    else:
+        ax.text(0.5, 0.5, NO_SIGMA, ha="center", va="center", wrap=True, transform=ax.transAxes)
+    ax.set_xlabel("relative scale sigma (scale_sigma / scale)")
+    ax.set_ylabel("scale error |Scale (Traj.) - 1|")
+    ax.grid(alpha=0.3, which="both")
+
+
+def save_sigma_plot(path: str | Path, series: dict[str, Claims], *, title: str = "") -> Path:
+    """Write ``draw_sigma``'s figure of ``series`` as a PNG."""
+    fig = Figure(figsize=(6.4, 5.6), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    draw_sigma(ax, series)
+    ax.set_title(title or "scale error against its sigma (claimed clips)", fontsize=9)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -2,8 +2,11 @@
 
 Aggregation follows the paper: every number is the median over clips (NaN values, e.g. Scale (Traj.) of a
 stationary clip or depth metrics without GT depth, are left out of the median; a metric with no value is null).
-The Base column uses every clip; the VI3 columns use the clips whose initialisation was ok (a clip with a
-rejected or unobservable init has no metric output; it is counted in ``status_counts``).
+The columns (Base, IMU-init, IMU-cond, TTR) are **paired**: each metric's medians are taken over the same clips,
+those whose initialisation was ok (a clip with a rejected or unobservable init has no metric output; it is counted
+in ``status_counts``) and whose value of that metric is defined in every column. The base model over all clips is
+reported separately (``base_all``). Beside the medians: the claimed clips more than 10 % off and the calibration of
+the scale sigmas (``vi3_core.eval.claims``).
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from vi3_core.eval.chained import ChainedMetrics, count_outliers, scored_tail
+from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
+from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.types import InitStatus
 
@@ -29,6 +33,7 @@ INIT_LABELS: dict[str, str] = {
     "v1_dir_deg": "v1 dir. (deg) ↓", "v1_mag_err": "v1 mag. ↓", "v1_mag_ratio": "|v1^|/|v1| →1",
 }
 COLUMN_LABELS: dict[str, str] = {"base": "Base", "init": "IMU-init", "cond": "IMU-cond", "ttr": "TTR"}
+TRAJECTORY_KEYS = tuple(f.name for f in dataclasses.fields(ChainedMetrics) if f.name != "segments")
 
 
 def _finite(values: Iterable[float | None]) -> np.ndarray:
@@ -46,37 +51,91 @@ def _column(evals: Sequence[ClipEval], column: str) -> dict[str, float | None]:
     return {key: _median(r[key] for r in rows) for key in METRIC_LABELS}
 
 
+def paired_columns(evals: Sequence[ClipEval], columns: Sequence[str]) -> dict[str, dict[str, float | None]]:
+    """Medians of every metric of ``columns`` over the same clips: those that have every column, and of them,
+    per metric, those whose value is finite in every column."""
+    rows = [e for e in evals if all(c in e.columns for c in columns)]
+    out: dict[str, dict[str, float | None]] = {c: {} for c in columns}
+    for key in METRIC_LABELS:
+        values = np.array([[getattr(e.columns[c], key) for c in columns] for e in rows],
+                          dtype=np.float64).reshape(len(rows), len(columns))
+        keep = np.isfinite(values).all(axis=1)
+        for j, c in enumerate(columns):
+            out[c][key] = float(np.median(values[keep, j])) if keep.any() else None
+    return out
+
+
+def expected_columns(mode: str) -> list[str]:
+    """The columns an ok clip has in ``mode``: base, the (fast) init, and the refined mode."""
+    return ["base", "init"] + ([mode] if mode != "init" else [])
+
+
+def status_note(evals: Sequence[ClipEval]) -> str:
+    """Why no clip claimed a scale ("" when one did): the status counts and the most frequent reason."""
+    if any(e.ok for e in evals) or not evals:
+        return "" if evals else "no clip evaluated"
+    counts = Counter(e.status for e in evals)
+    reason, n = Counter(e.reason for e in evals).most_common(1)[0]
+    return (f"no clip ok of {len(evals)} ({', '.join(f'{k} {v}' for k, v in counts.items())}); most frequent "
+            f"reason ({n}): {reason}")
+
+
 def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3", backbone: str = "",
               sequence: str = "") -> dict:
-    """The JSON report: ``n_clips``, ``init`` (median init errors over ok clips), ``base`` and ``vi3`` (median
-    metrics; ``vi3`` is the column of ``mode``), ``columns`` (every column evaluated: base, init, cond/ttr),
-    ``status_counts`` (clips per init status) and a per-clip list."""
+    """The JSON report: ``n_clips``, ``n_ok``, ``n_paired`` (clips in the paired medians), ``columns`` (paired
+    medians of every column: base, init, cond/ttr), ``base`` and ``vi3`` (its base and ``mode`` columns),
+    ``base_all`` (the base over every clip), ``init`` (median init errors over ok clips), ``claimed_outliers`` and
+    ``sigma_calibration`` (``vi3_core.eval.claims``), ``status_counts``, ``note`` (why no clip is ok, "" otherwise)
+    and a per-clip list."""
     ok = [e for e in evals if e.ok]
-    columns = [c for c in COLUMN_LABELS if any(c in e.columns for e in evals)]
+    columns = expected_columns(mode)
+    paired = [e for e in evals if all(c in e.columns for c in columns)]
+    medians = paired_columns(paired, columns)
     init_rows = [e.init_metrics.as_dict() for e in ok if e.init_metrics is not None]
     counts = Counter(e.status for e in evals)
-    return {
+    return _plain({
         "sequence": sequence, "backbone": backbone, "mode": mode, "init_source": init_source,
-        "n_clips": len(evals), "n_ok": len(ok),
+        "n_clips": len(evals), "n_ok": len(ok), "n_paired": len(paired),
         "init": {key: _median(r[key] for r in init_rows) for key in INIT_LABELS},
-        "base": _column(evals, "base"),
-        "vi3": _column(evals, mode),
-        "columns": {c: _column(evals, c) for c in columns},
+        "base": medians["base"],
+        "vi3": medians[mode],
+        "columns": medians,
+        "base_all": _column(evals, "base"),
+        "claimed_outliers": clip_claims(evals, mode).outliers(),
+        "sigma_calibration": clip_claims(evals, "init").calibration(),
         "status_counts": {s.value: counts.get(s.value, 0) for s in InitStatus},
+        "note": status_note(evals),
         "clips": [{"frames": [int(e.indices[0]), int(e.indices[-1])], "t0": float(e.stamps[0]), "status": e.status,
-                   "reason": e.reason, "mode": e.mode} for e in evals],
-    }
+                   "reason": e.reason, "mode": e.mode,
+                   "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
+                   "scale_rel_sigma": rel_sigma(e)} for e in evals],
+    })
 
 
-def to_json(summary: dict) -> str:
-    """One JSON object (no NaN: missing values are null)."""
-    return json.dumps(summary, allow_nan=False)
+def _plain(value):
+    """``value`` with numpy scalars and arrays made Python numbers and lists, and non-finite floats None."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
+
+
+def to_json(obj) -> str:
+    """One strictly valid JSON document: NaN and +-Inf become null, numpy values plain numbers and lists."""
+    return json.dumps(_plain(obj), allow_nan=False)
 
 
 def _fmt(value: float | None, key: str) -> str:
     if value is None:
         return "--"
-    if key.endswith("err_median"):
+    if key.endswith("err_median") or key.endswith("sigma"):
         return f"{value:.4f}"
     return f"{value:.2f}" if key.startswith("scale") or key.endswith("ratio") else f"{value:.3f}"
 
@@ -90,16 +149,50 @@ def _grid(header: list[str], rows: list[list[str]]) -> str:
 
 
 def format_tables(summary: dict) -> str:
-    """Paper-like text tables: metrics x (Base / IMU-init / IMU-cond / TTR), then the init errors."""
+    """Paper-like text tables: metrics x (Base / IMU-init / IMU-cond / TTR, paired; Base over all clips), the claimed
+    outliers and sigma calibration, then the init errors."""
     cols = list(summary["columns"])
+    n = summary["n_clips"]
     title = (f"VI3 evaluation: {summary['sequence'] or 'sequence'} | backbone {summary['backbone'] or '?'} | "
              f"mode {summary['mode']} | init {'GT-free' if summary['init_source'] == 'vi3' else 'GT (oracle)'} | "
-             f"{summary['n_clips']} clip{'' if summary['n_clips'] == 1 else 's'}, median over clips")
-    rows = [[label, *(_fmt(summary["columns"][c][key], key) for c in cols)] for key, label in METRIC_LABELS.items()]
+             f"{n} clip{'' if n == 1 else 's'}, {summary['n_ok']} ok; medians over the {summary['n_paired']} paired "
+             f"clips (ok), Base (all) over all {n}")
+    rows = [[label, *(_fmt(summary["columns"][c][key], key) for c in cols), _fmt(summary["base_all"][key], key)]
+            for key, label in METRIC_LABELS.items()]
     init_rows = [[label, _fmt(summary["init"][key], key)] for key, label in INIT_LABELS.items()]
     status = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
-    return "\n\n".join([title, _grid(["Metric", *(COLUMN_LABELS[c] for c in cols)], rows),
-                        _grid(["Initialisation", "error"], init_rows), f"clip status: {status}"])
+    claims = (f"claimed scales (ok clips) more than 10 % off: {format_outliers(summary['claimed_outliers'])}; "
+              f"scale sigma: {format_calibration(summary['sigma_calibration'])}")
+    parts = [title, _grid(["Metric", *(COLUMN_LABELS[c] for c in cols), "Base (all)"], rows), claims,
+             _grid(["Initialisation", "error"], init_rows), f"clip status: {status}"]
+    if summary.get("depth_gt", "").startswith("unreadable"):
+        parts.append(f"depth ground truth {summary['depth_gt']}")
+    return "\n\n".join(parts + ([summary["note"]] if summary["note"] else []))
+
+
+def format_clips(summary: dict) -> str:
+    """The per-clip table: frames, start (s after the first clip), status, Scale (Traj.) of the VI3 column and the
+    relative scale sigma; in chained runs also each clip's own GT-free initialisation and the estimator's decision;
+    then the reason."""
+    clips = summary["clips"]
+    if not clips:
+        return "no clips"
+    chained = summary.get("chained")
+    header = ["#", "frames", "t (s)", "status", "Scale (Traj.)", "rel. sigma"]
+    if chained:
+        header += ["own init", "own |err|", "own sigma"]
+    rows = []
+    for k, c in enumerate(clips):
+        row = [str(k), f"{c['frames'][0]}-{c['frames'][1]}", f"{c['t0'] - clips[0]['t0']:.2f}", c["status"],
+               _fmt(c["scale_traj"], "scale_traj"), _fmt(c["scale_rel_sigma"], "rel_sigma")]
+        if chained:
+            own = chained["independent_clips"][k]
+            row += [own["status"], _fmt(own["scale_err"], "err_median"), _fmt(own["scale_rel_sigma"], "rel_sigma")]
+        rows.append(row)
+    table = _grid(header, rows).splitlines()
+    notes = [f"  {c['reason']}" + (f" | {chained['decisions'][k]}" if chained else "") for k, c in enumerate(clips)]
+    body = [line for pair in zip(table[2:], notes) for line in pair]
+    return "\n".join([f"Per clip: {summary['sequence']} (reason | online decision)", *table[:2], *body])
 
 
 def format_ablation(summaries: dict[str, dict]) -> str:
@@ -112,33 +205,52 @@ def format_ablation(summaries: dict[str, dict]) -> str:
     return "Initialisation ablations (supplementary tables), median over clips\n\n" + _grid(header, rows)
 
 
+def independent_claims(run) -> Claims:
+    """The claims of the chained clips' own GT-free initialisation (``runner.OnlineRun``)."""
+    return Claims.of(run.independent_scale_err, run.independent_rel_sigma)
+
+
 def chained_summary(run) -> dict:
-    """The ``chained`` JSON object of a ``runner.OnlineRun``: the ``ChainedMetrics`` fields (``ate_m``,
-    ``drift_pct``, ``gravity_err_deg``, ``resets``, ``scale_err_median``, ``independent_scale_err_median``, ...;
-    None when fewer than 2 poses were chained or without a value) and the per-clip ``decisions`` (window, priors
-    used, rejected with reasons, resets)."""
-    m = run.metrics.as_dict() if run.metrics is not None else dict.fromkeys(
-        f.name for f in dataclasses.fields(ChainedMetrics))
-    m = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in m.items()}
-    return {**m, "decisions": list(run.decisions)}
+    """The ``chained`` JSON object of a ``runner.OnlineRun``: ``applicable`` and ``reason`` (why the trajectory is
+    not scored), the ``ChainedMetrics`` (``ate_m``, ``drift_pct``, ``gravity_err_deg``, ``distance_m``, ``frames``,
+    ``segments`` count, ``per_segment``; None when not scored), ``resets``, the per-clip scale error medians
+    (``scale_err_median`` chained, ``independent_scale_err_median`` the clips' own GT-free initialisation), that
+    initialisation's ``independent_claimed_outliers`` and ``independent_sigma_calibration``, and per clip the
+    ``decisions`` (window, priors used, rejected with reasons, resets) and ``independent_clips``."""
+    m = run.metrics.as_dict() if run.metrics is not None else {**dict.fromkeys(TRAJECTORY_KEYS), "segments": None,
+                                                                  "per_segment": []}
+    own = independent_claims(run)
+    return _plain({
+        "applicable": run.metrics is not None, "reason": run.reason, **m, "resets": run.resets,
+        "scale_err_median": median_after_skip(run.scale_err),
+        "independent_scale_err_median": median_after_skip(run.independent_scale_err),
+        "independent_claimed_outliers": own.outliers(), "independent_sigma_calibration": own.calibration(),
+        "decisions": list(run.decisions),
+        "independent_clips": [{"status": st, "scale_err": err, "scale_rel_sigma": sg} for st, err, sg in
+                              zip(run.independent_status, run.independent_scale_err, run.independent_rel_sigma)],
+    })
 
 
-def pool_chained(runs: Sequence) -> dict:
-    """The chained metrics of several sequences' ``runner.OnlineRun``s: the per-clip scale errors pooled
-    (``scale_err_median``, ``independent_scale_err_median``: medians over every sequence's ``chained.scored_tail``),
-    the worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg``, the total ``resets`` and the total
-    ``scale_outliers`` / ``independent_scale_outliers``."""
-    worst = {key: _finite_max(getattr(r.metrics, key) for r in runs if r.metrics is not None)
-             for key in ("ate_m", "drift_pct", "gravity_err_deg")}
-    return {
-        "sequences": len(runs),
-        "scale_err_median": _median(np.concatenate([scored_tail(r.scale_err) for r in runs])),
-        "independent_scale_err_median": _median(np.concatenate([scored_tail(r.independent_scale_err) for r in runs])),
-        **{f"{key}_max": value for key, value in worst.items()},
-        "resets": sum(r.metrics.resets for r in runs if r.metrics is not None),
-        "scale_outliers": sum(count_outliers(r.scale_err) for r in runs),
-        "independent_scale_outliers": sum(count_outliers(r.independent_scale_err) for r in runs),
-    }
+def pool_chained(named_runs: Sequence[tuple[str, object]]) -> dict:
+    """The chained results of several sequences, ``(name, runner.OnlineRun)`` pairs: the per-clip scale errors
+    pooled (``scale_err_median``, ``independent_scale_err_median``: medians over every sequence's
+    ``chained.scored_tail``), the pooled ``independent_claimed_outliers`` / ``independent_sigma_calibration``, the
+    worst ``ate_m``, ``drift_pct`` and ``gravity_err_deg`` over the ``scored`` sequences, the total ``segments``
+    and ``resets``, and ``not_scored``: every sequence whose trajectory was not scored, with the reason."""
+    scored = [r for _, r in named_runs if r.metrics is not None]
+    own = Claims.concatenate(independent_claims(r) for _, r in named_runs)
+    return _plain({
+        "sequences": len(named_runs), "scored": len(scored),
+        "not_scored": [{"sequence": name, "reason": r.reason} for name, r in named_runs if r.metrics is None],
+        "scale_err_median": _median(np.concatenate([[], *(scored_tail(r.scale_err) for _, r in named_runs)])),
+        "independent_scale_err_median": _median(np.concatenate(
+            [[], *(scored_tail(r.independent_scale_err) for _, r in named_runs)])),
+        "independent_claimed_outliers": own.outliers(), "independent_sigma_calibration": own.calibration(),
+        **{f"{key}_max": _finite_max(getattr(r.metrics, key) for r in scored)
+           for key in ("ate_m", "drift_pct", "gravity_err_deg")},
+        "segments": sum(len(r.metrics.segments) for r in scored),
+        "resets": sum(r.resets for _, r in named_runs),
+    })
 
 
 def _finite_max(values: Iterable[float | None]) -> float | None:
@@ -146,18 +258,60 @@ def _finite_max(values: Iterable[float | None]) -> float | None:
     return float(arr.max()) if arr.size else None
 
 
-def format_chained(chained: dict) -> str:
-    """One table of the chained trajectory's metrics."""
-    keys = ("ate_m", "drift_pct", "gravity_err_deg", "resets", "distance_m", "scale_err_median",
-            "independent_scale_err_median", "scale_outliers", "independent_scale_outliers")
-    return "Chained odom trajectory (yaw + position of the first pose aligned)\n" + _one_row(chained, keys)
+def _claims_line(prefix: str, outliers: dict, calibration: dict) -> str:
+    return (f"{prefix} claimed scales more than 10 % off: {format_outliers(outliers)}; scale sigma: "
+            f"{format_calibration(calibration)}")
+
+
+def format_chained(chained: dict, summary: dict) -> str:
+    """The chained trajectory's metrics (per segment when there are several), the per-clip scale errors and the
+    claims of the chained clips (``summary``: their ``summarise``) beside those of the clips' own initialisation."""
+    title = "Chained odom trajectory (yaw + position of each segment's first pose aligned)"
+    scales = _one_row(chained, ("scale_err_median", "independent_scale_err_median", "resets"))
+    claims = "\n".join([_claims_line("chained:", summary["claimed_outliers"], summary["sigma_calibration"]),
+                        _claims_line("own init:", chained["independent_claimed_outliers"],
+                                     chained["independent_sigma_calibration"])])
+    if not chained["applicable"]:
+        return f"{title}: {chained['reason']}\n{scales}\n{claims}"
+    traj = _one_row(chained, ("ate_m", "drift_pct", "gravity_err_deg", "distance_m", "frames", "segments"))
+    parts = [f"{title}\n{traj}"]
+    if chained["segments"] > 1:
+        keys = ("t0", "t1", "frames", "distance_m", "ate_m", "drift_pct")
+        rows = [[str(k), *(str(s[key]) if key == "frames" else f"{s[key]:.2f}" if key in ("t0", "t1")
+                           else _fmt(s[key], key) for key in keys)] for k, s in enumerate(chained["per_segment"])]
+        parts.append(_grid(["segment", *keys], rows))
+    return "\n".join([*parts, scales, claims])
 
 
 def format_pooled_chained(pooled: dict) -> str:
-    """One table of ``pool_chained``'s metrics."""
+    """One table of ``pool_chained``'s metrics, the pooled claims of the clips' own initialisation, and a line per
+    sequence whose trajectory was not scored."""
     keys = ("scale_err_median", "independent_scale_err_median", "ate_m_max", "drift_pct_max", "gravity_err_deg_max",
-            "resets", "scale_outliers", "independent_scale_outliers")
-    return f"Chained odom trajectories, {pooled['sequences']} sequences pooled\n" + _one_row(pooled, keys)
+            "segments", "resets")
+    lines = [f"Chained odom trajectories, {pooled['sequences']} sequences pooled ({pooled['scored']} scored)",
+             _one_row(pooled, keys),
+             _claims_line("own init:", pooled["independent_claimed_outliers"],
+                          pooled["independent_sigma_calibration"])]
+    lines += [f"not scored: {s['sequence']}: {s['reason']}" for s in pooled["not_scored"]]
+    return "\n".join(lines)
+
+
+def format_overview(sequences: Sequence[dict]) -> str:
+    """One line per sequence, evaluated or not: clips, ok, paired, VI3 Scale (Traj.), claimed outliers, chained
+    ATE and drift (or why there are none), and the error or note."""
+    header = ["Sequence", "clips", "ok", "paired", "Scale (Traj.)", "claimed >10 % off", "ATE (m)", "drift (%)",
+              "note"]
+    rows = []
+    for s in sequences:
+        if "error" in s and "n_clips" not in s:
+            rows.append([s["sequence"], *["--"] * 7, f"error: {s['error']}"])
+            continue
+        ch = s.get("chained") or {}
+        note = s.get("error", "") or s["note"] or (ch.get("reason", "") if ch else "")
+        rows.append([s["sequence"], str(s["n_clips"]), str(s["n_ok"]), str(s["n_paired"]),
+                     _fmt(s["vi3"]["scale_traj"], "scale_traj"), format_outliers(s["claimed_outliers"]),
+                     _fmt(ch.get("ate_m"), "ate_m"), _fmt(ch.get("drift_pct"), "drift_pct"), note])
+    return "Sequences\n" + _grid(header, rows)
 
 
 def _one_row(values: dict, keys: tuple[str, ...]) -> str:

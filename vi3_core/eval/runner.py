@@ -20,9 +20,10 @@ from tqdm import tqdm
 from vi3_core.anchor import MODES, AnchorOptions, anchor
 from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.sequence import Sequence, make_clip, sample_clips
-from vi3_core.errors import DataError
+from vi3_core.errors import DataError, Vi3Error
 from vi3_core.eval import metrics
 from vi3_core.eval.chained import ChainedMetrics, chained_metrics
+from vi3_core.eval.claims import scale_error
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.init import InitOptions, oracle_init
 from vi3_core.init.oracle import gt_init_state
@@ -116,15 +117,42 @@ def clip_indices(n_frames: int, *, options: EvalOptions) -> list[np.ndarray]:
     return clips
 
 
-def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None) -> list[ClipEval]:
-    """Evaluate every sampled clip of ``seq`` (which must have ground truth), with a progress bar over clips."""
-    options = options or EvalOptions()
+class EvaluationStopped(Vi3Error):
+    """An evaluation that failed part-way: ``evals`` (and ``online``, in chained runs) hold what was computed for
+    the clips before the one that failed."""
+
+    def __init__(self, message: str, evals: list[ClipEval], online: OnlineRun | None = None) -> None:
+        super().__init__(message)
+        self.evals, self.online = evals, online
+
+
+def check_sequence(seq: Sequence, *, options: EvalOptions) -> list[np.ndarray]:
+    """The clips ``evaluate_sequence`` / ``evaluate_online`` would evaluate; raises DataError when ``seq`` cannot be
+    evaluated (no ground truth, no calibration, too short), before any clip is."""
     if seq.gt is None:
         raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
+    if seq.calib is None:
+        raise DataError(f"sequence {seq.name!r} has no camera calibration (pass --calib for bags without one)")
+    return clip_indices(len(seq.stamps), options=options)
+
+
+def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEval],
+             online: OnlineRun | None = None) -> EvaluationStopped:
+    return EvaluationStopped(f"sequence {seq.name!r}, clip of frames {int(idx[0])}-{int(idx[-1])}: {err} (the "
+                             f"{len(evals)} clips before it were evaluated)", evals, online)
+
+
+def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None) -> list[ClipEval]:
+    """Evaluate every sampled clip of ``seq`` (which must have ground truth), with a progress bar over clips.
+    A clip that fails raises ``EvaluationStopped`` with the clips evaluated before it."""
+    options = options or EvalOptions()
     out = []
-    for idx in tqdm(clip_indices(len(seq.stamps), options=options), desc=f"eval {seq.name}", unit="clip",
+    for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
                     disable=not options.progress):
-        out.append(evaluate_clip(make_clip(seq, idx), backbone, options=options, indices=idx))
+        try:
+            out.append(evaluate_clip(make_clip(seq, idx), backbone, options=options, indices=idx))
+        except (Vi3Error, ValueError, OSError) as err:
+            raise _stopped(seq, idx, err, out) from err
     return out
 
 
@@ -141,50 +169,94 @@ def ablate(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = N
 
 @dataclass
 class OnlineRun:
-    """The chained run of a sequence: stamps [N] s, T_OB [N,4,4] the odom trajectory, T_WB [N,4,4] GT body
-    poses at the same stamps, decisions: the estimator's description of each clip; scale_err,
-    independent_scale_err: [n_clips] |Scale (Traj.) - 1| of each clip chained and of its own GT-free
-    initialisation (NaN: no value); metrics (None with < 2 poses)."""
+    """The chained run of a sequence: stamps [N] s, T_OB [N,4,4] the odom trajectory, T_WB [N,4,4] GT body poses at
+    the same stamps; segment_starts: stamps at which the estimator began a new segment (``Trajectory.resets``);
+    decisions: the estimator's description of each clip; resets: clips after the first whose decision restarted the
+    state (every reset the decision log records); scale_err [n_clips]: |Scale (Traj.) - 1| of each chained clip
+    (NaN: no value); independent_status, independent_scale_err, independent_rel_sigma [n_clips]: each clip's own
+    GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale sigma;
+    metrics: None when the trajectory cannot be scored, ``reason`` then says why."""
 
     stamps: np.ndarray
     T_OB: np.ndarray
     T_WB: np.ndarray
+    segment_starts: list[float] = field(default_factory=list)
     decisions: list[str] = field(default_factory=list)
+    resets: int = 0
     scale_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    independent_status: list[str] = field(default_factory=list)
     independent_scale_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    independent_rel_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     metrics: ChainedMetrics | None = None
+    reason: str = ""
+
+
+def contiguity_gap(seq: Sequence, clips: list[np.ndarray], max_gap_s: float) -> str:
+    """Why ``clips`` (time-ordered frame indices) cannot be chained: the first stretch between consecutive clips
+    longer than ``max_gap_s`` ("" when there is none)."""
+    for k in range(1, len(clips)):
+        gap = float(seq.stamps[clips[k][0]] - seq.stamps[clips[k - 1][-1]])
+        if gap > max_gap_s:
+            return (f"not applicable: the clips are not contiguous (frames {clips[k - 1][0]}-{clips[k - 1][-1]} and "
+                    f"{clips[k][0]}-{clips[k][-1]} are {gap:.2f} s apart, more than the {max_gap_s:g} s the IMU "
+                    "bridges); chain contiguous clips (sliding, not thinned)")
+    return ""
 
 
 def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None,
                     online_options: OnlineOptions | None = None,
                     clips: list[np.ndarray] | None = None) -> tuple[list[ClipEval], OnlineRun]:
     """``evaluate_sequence`` with the metric state carried across clips (``vi3_core.online``, GT-free): each clip's
-    initialisation from the stream's priors, and the clips chained into one odom trajectory, scored against GT.
-    ``clips`` overrides the sampled frame indices (a test leaves a gap in the images)."""
+    initialisation from the stream's priors, and the clips chained into one odom trajectory, scored against GT per
+    segment. Clips that are not contiguous are still evaluated one by one, but their trajectory is not scored
+    (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap in the images). A clip
+    that fails raises ``EvaluationStopped`` with what was computed before it."""
     options = options or EvalOptions()
     if options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
-    if seq.gt is None:
-        raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
+    sampled = check_sequence(seq, options=options)
+    clips = sampled if clips is None else clips
     est = OnlineEstimator(options=online_options, init_options=options.init_options)
-    evals, decisions, scale_err, independent = [], [], [], []
-    for idx in tqdm(clip_indices(len(seq.stamps), options=options) if clips is None else clips,
-                    desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
-        # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
-        clip = make_clip(seq, idx, history_s=max(2.0, est.options.max_gap_s))
-        ev = evaluate_clip(clip, backbone, options=options, indices=idx,
-                           init=lambda base, clip=clip: est.initialise(clip, base))
-        est.update(clip, ev.result)
-        decisions.append(est.last.describe())
+    evals, free = [], []
+    run = OnlineRun(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
+    for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
+        try:
+            # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
+            clip = make_clip(seq, idx, history_s=max(2.0, est.options.max_gap_s))
+            ev = evaluate_clip(clip, backbone, options=options, indices=idx,
+                               init=lambda base, clip=clip: est.initialise(clip, base))
+            est.update(clip, ev.result)
+        except (Vi3Error, ValueError, OSError) as err:
+            raise _stopped(seq, idx, err, evals, _finish(seq, est, run, evals, free, clips)) from err
+        run.decisions.append(est.last.describe())
+        if evals and est.last.reset:  # the first clip of the stream always starts the window
+            run.resets += 1
         evals.append(ev)
         diag = ev.result.init.diagnostics
-        base_scale = ev.columns["base"].scale_traj  # linear in the scale: the free init's = base * its scale
-        independent.append(abs(base_scale * diag["free_scale"] - 1.0) if diag["free_status"] == "ok" else np.nan)
-        scale_err.append(abs(ev.columns[ev.mode].scale_traj - 1.0) if ev.mode in ev.columns else np.nan)
+        free.append((diag["free_status"], diag["free_scale"], diag.get("free_scale_sigma", np.nan)))
+    return evals, _finish(seq, est, run, evals, free, clips)
+
+
+def _finish(seq: Sequence, est: OnlineEstimator, run: OnlineRun, evals: list[ClipEval],
+            free: list[tuple[str, float, float]], clips: list[np.ndarray]) -> OnlineRun:
+    """``run`` completed with the trajectory, the per-clip scale errors of ``evals`` and the metrics."""
     traj = est.trajectory
-    T_WB = seq.gt.at(traj.stamps).T_WB if len(traj.stamps) else np.zeros((0, 4, 4))
-    run = OnlineRun(traj.stamps, traj.T_OB, T_WB, decisions, np.array(scale_err), np.array(independent))
-    if len(traj.stamps) >= 2:
-        run.metrics = chained_metrics(traj.T_OB, T_WB, resets=len(traj.resets), scale_err=run.scale_err,
-                                      independent_scale_err=run.independent_scale_err)
-    return evals, run
+    run.stamps, run.T_OB, run.segment_starts = traj.stamps, traj.T_OB, list(traj.resets)
+    run.T_WB = seq.gt.at(traj.stamps).T_WB if len(traj.stamps) else np.zeros((0, 4, 4))
+    run.scale_err = np.array([scale_error(e, e.mode) for e in evals])
+    # Scale (Traj.) is linear in the scale: the free init's is the base's times its scale.
+    base = np.array([e.columns["base"].scale_traj for e in evals])
+    status = [st for st, _, _ in free]
+    scale = np.array([sc for _, sc, _ in free], dtype=np.float64)
+    ok = np.array([st == "ok" for st in status], dtype=bool)
+    run.independent_status = status
+    run.independent_scale_err = np.where(ok, np.abs(base * scale - 1.0), np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        run.independent_rel_sigma = np.array([sg for _, _, sg in free], dtype=np.float64) / scale
+    run.reason = contiguity_gap(seq, clips, est.options.max_gap_s)
+    if not run.reason and len(traj.stamps) < 2:
+        run.reason = (f"no trajectory: {len(traj.stamps)} chained poses ({sum(e.ok for e in evals)} of "
+                      f"{len(evals)} clips ok)")
+    run.metrics = None if run.reason else chained_metrics(run.T_OB, run.T_WB, stamps=run.stamps,
+                                                          segment_starts=run.segment_starts)
+    return run

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 
 BENCHES: dict[str, str] = {
     "init": "vi3_core.init.bench:bench_init",
@@ -35,6 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vi3_core.eval.report import to_json  # strict JSON: a NaN timing or ratio prints as null
+
     names = list(BENCHES) if args.name == "all" else [args.name]
     status = 0
     for name in names:
@@ -42,5 +43,5 @@ def run(args: argparse.Namespace) -> int:
             result = {"bench": name, **_load(name)(args)}
         except (ImportError, AttributeError) as exc:
             result, status = {"bench": name, "error": f"not available: {exc}"}, 2
-        print(json.dumps(result))
+        print(to_json(result))
     return status

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
     mode = ["--mode", "ttr", "--steps", str(args.ttr_steps)] if args.ttr_steps > 0 else ["--mode", "init"]
     t0 = _step(f"2/2 evaluate {eval_input} against ground truth ({' '.join(mode)}, paper clips: start/middle/end)")
-    rc = cli.main(["eval", str(eval_input), "--backbone", args.backbone, *mode, "--plot", str(png),
+    rc = cli.main(["eval", str(eval_input), "--backbone", args.backbone, *mode, "--clips", "paper", "--plot", str(png),
                    "--json-out", str(report_json), "--export-tum", str(tum_dir)])
     if rc:
         print(f"vi3 demo: evaluation failed with exit status {rc}")

@@ -1,19 +1,27 @@
 """``vi3 eval INPUT [INPUT ...]``: the paper's metrics on sequences with ground truth (ASL folder, ROS 1 bag,
 rosbag2, .mcap).
 
-Prints paper-like tables (Base / IMU-init / IMU-cond / TTR columns) or, with ``--json``, one JSON object; writes
-the top-down trajectory / point-cloud plot (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``). With
-several inputs every sequence is reported, then the clips of all of them pooled (the paper's medians over clips);
-the JSON object is then {"sequences": [...], "pooled": {...}} and plots / TUM files get the sequence name.
+Prints a per-clip table and paper-like tables (Base / IMU-init / IMU-cond / TTR columns, paired over the same
+clips) or, with ``--json``, one JSON object; writes the top-down trajectory / point-cloud plot and its scale-sigma
+companion (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``). With several inputs every sequence is
+reported, then the clips of all of them pooled (the paper's medians over clips); the JSON object is then
+{"sequences": [...], "pooled": {...}} and plots / TUM files get the sequence name (unique within the run).
+
+Every input and output path is checked before any clip is evaluated. A failure after that (a clip that cannot be
+read, an output that cannot be written) still writes what was computed, marked ``"partial": true`` with the
+errors, and exits with status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 MODES = ("init", "cond", "ttr")  # = vi3_core.anchor.MODES, not imported here: that pulls in torch
+RESERVED_NAMES = ("sigma",)  # <stem>_sigma.png is the sigma plot's
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,8 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="anchoring mode of the VI3 column; cond/ttr also report the fast init (default: init)")
     p.add_argument("--init", choices=("vi3", "gt"), default="vi3", dest="init_source",
                    help="vi3: GT-free initialisation (default); gt: oracle init from ground truth")
-    p.add_argument("--clips", choices=("paper", "sliding"), default="paper",
-                   help="paper: start/middle/end clips (default); sliding: every --hop frames")
+    p.add_argument("--clips", choices=("paper", "sliding"), default=None,
+                   help="paper: start/middle/end clips; sliding: every --hop frames (default: sliding when chaining, "
+                        "paper with --independent, --init gt or --ablate)")
     p.add_argument("--n", type=int, default=8, help="frames per clip (default 8)")
     p.add_argument("--stride", type=int, default=2, help="frame stride within a clip (default 2)")
     p.add_argument("--hop", type=int, default=None, help="frames between sliding clips (default n*stride)")
@@ -46,81 +55,272 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "and the clips are chained into one odom trajectory; always independent with --init gt)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON object to FILE")
-    p.add_argument("--plot", default=None, metavar="PNG", help="write the trajectory / point-cloud plot here")
+    p.add_argument("--plot", default=None, metavar="PNG",
+                   help="write the trajectory / point-cloud plot here, and the scale error against its sigma to "
+                        "<stem>_sigma.png")
     p.add_argument("--export-tum", default=None, metavar="DIR",
                    help="write TUM trajectories (for evo) here: per clip, and the chained odom_vi3.txt / odom_gt.txt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
+@dataclass
+class Evaluated:
+    """One input of the run: its unique ``name``, the opened sequence (kept only while it waits to be evaluated),
+    its JSON object and text (once evaluated), the clip evaluations and the chained run (None when independent),
+    and the ``error`` that stopped it ("" when none)."""
+
+    name: str
+    path: str
+    seq: object = None
+    obj: dict = field(default_factory=dict)
+    text: str = ""
+    evals: list = field(default_factory=list)
+    online: object = None
+    error: str = ""
+
+
+def _chained(args: argparse.Namespace) -> bool:
+    return not (args.ablate or args.independent or args.init_source == "gt")
+
+
+def _open(args: argparse.Namespace, path: str):
+    from vi3_ros.io.reader import open_sequence
+
+    return open_sequence(path, calib=args.calib)
+
+
+def unique_names(names: list[str], reserved: tuple[str, ...] = RESERVED_NAMES) -> list[str]:
+    """``names`` made unique in order (a repeated name gets ``_2``, ``_3``, ...), none of them in ``reserved``."""
+    taken, out = set(reserved), []
+    for name in names:
+        cand, k = name, 2
+        while cand in taken:
+            cand, k = f"{name}_{k}", k + 1
+        taken.add(cand)
+        out.append(cand)
+    return out
+
+
+def _check_dir(path: Path, what: str) -> None:
+    """``path`` is, or can be created as, a writable folder (nothing is created)."""
+    probe = path
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise OSError(f"{what} {path}: {probe} is not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise OSError(f"{what} {path}: {probe} is not writable")
+
+
+def _check_file(path: Path, what: str) -> None:
+    if path.is_dir():
+        raise OSError(f"{what} {path}: is a folder")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OSError(f"{what} {path}: not writable")
+    _check_dir(path.parent, what)
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """Raise OSError when --plot, --json-out or --export-tum cannot be written (nothing is created)."""
+    for value, what in ((args.plot, "--plot"), (args.json_out, "--json-out")):
+        if value:
+            _check_file(Path(value), what)
+    if args.export_tum:
+        _check_dir(Path(args.export_tum), "--export-tum")
+
+
+def output_paths(args: argparse.Namespace, names: list[str]) -> dict:
+    """Where each output of the run goes: {"plots": {name: png}, "sigma": png or None, "tum": {name: dir},
+    "json": file or None}; raises OSError when one is not writable or two outputs would be the same path."""
+    from vi3_core.eval.plot import sigma_plot_path
+
+    several = len(names) > 1
+    plots, tum, sigma = {}, {}, None
+    if args.plot:
+        png = Path(args.plot)
+        plots = {n: png.with_name(f"{png.stem}_{n}{png.suffix}") if several else png for n in names}
+        sigma = sigma_plot_path(png)
+    if args.export_tum:
+        tum = {n: Path(args.export_tum) / n if several else Path(args.export_tum) for n in names}
+    json_out = Path(args.json_out) if args.json_out else None
+    files = [*plots.values(), *([sigma] if sigma else []), *([json_out] if json_out else [])]
+    for f in files:
+        _check_file(f, "--json-out" if f == json_out else "--plot")
+    resolved = [f.resolve() for f in files]
+    dirs = {d.resolve() for d in tum.values()}
+    clash = {str(f) for f in resolved if resolved.count(f) > 1 or f in dirs}
+    if clash:
+        raise OSError(f"two outputs of this run would be the same path: {', '.join(sorted(clash))}")
+    return {"plots": plots, "sigma": sigma, "tum": tum, "json": json_out}
+
+
 def run(args: argparse.Namespace) -> int:
     # Imported here, not at module level: they pull in torch, and `vi3 --help` should stay fast.
-    from vi3_core.anchor import AnchorOptions
-    from vi3_core.backbones import make_backbone
     from vi3_core.errors import Vi3Error
-    from vi3_core.eval import report, runner
 
     try:
-        backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
-        options = runner.EvalOptions(
-            mode=args.mode, init_source=args.init_source, clips=args.clips, n=args.n, stride=args.stride,
-            hop=args.hop, max_clips=args.max_clips, progress=not args.no_progress,
-            anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
-        results = [_evaluate(args, path, backbone, options, several=len(args.input) > 1) for path in args.input]
-        if len(results) == 1:
-            obj, text = results[0][:2]
-        else:
-            obj, text = {"sequences": [r[0] for r in results]}, "\n\n".join(r[1] for r in results)
-            if not args.ablate:
-                evals = [e for r in results for e in r[2]]
-                pooled = report.summarise(evals, mode=args.mode, init_source=args.init_source,
-                                          backbone=args.backbone, sequence=f"pooled ({len(results)} sequences)")
-                text += "\n\n" + report.format_tables(pooled)
-                runs = [r[3] for r in results if r[3] is not None]
-                if runs:
-                    pooled["chained"] = report.pool_chained(runs)
-                    text += "\n" + report.format_pooled_chained(pooled["chained"])
-                obj["pooled"] = pooled
-        print(report.to_json(obj) if args.json else text)
-        if args.json_out:
-            Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json_out).write_text(report.to_json(obj) + "\n")
+        options, backbone, runs, outputs = _prepare(args)
     except (Vi3Error, ValueError, OSError) as exc:
         print(f"vi3 eval: error: {exc}", file=sys.stderr)
         return 2
-    return 0
+    for item in runs:
+        _evaluate(args, item, backbone, options)
+    obj, text = _combine(args, runs)
+    errors = [f"{r.name}: {r.error}" for r in runs if r.error] + _write_outputs(args, runs, outputs)
+    if errors:
+        obj["partial"], obj["errors"] = True, errors
+        text += "\n\nPARTIAL: " + "; ".join(errors)
+    try:
+        _emit(args, obj, text, outputs["json"])
+    except OSError as exc:
+        errors.append(str(exc))
+    for e in errors:
+        print(f"vi3 eval: error: {e}", file=sys.stderr)
+    return 2 if errors else 0
 
 
-def _evaluate(args: argparse.Namespace, path: str, backbone, options, *, several: bool) -> tuple:
-    """One input: (JSON object, text, evals, OnlineRun or None); writes its plot and TUM files (named after the
-    sequence when there are several inputs)."""
-    from vi3_core.eval import plot, report, runner, tum
-    from vi3_ros.io.reader import open_sequence
+def _prepare(args: argparse.Namespace) -> tuple:
+    """Options, backbone, one ``Evaluated`` per input (opened and checked: GT, calibration, enough frames; the
+    sequence itself kept only for a single input) and the output paths, all checked before any clip runs."""
+    from vi3_core.anchor import AnchorOptions
+    from vi3_core.backbones import make_backbone
+    from vi3_core.errors import DataError, Vi3Error
+    from vi3_core.eval import runner
 
-    seq = open_sequence(path, calib=args.calib)
-    meta = {"backbone": args.backbone, "sequence": seq.name}
-    online = None
+    clips = args.clips or ("sliding" if _chained(args) else "paper")
+    options = runner.EvalOptions(
+        mode=args.mode, init_source=args.init_source, clips=clips, n=args.n, stride=args.stride,
+        hop=args.hop, max_clips=args.max_clips, progress=not args.no_progress,
+        anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
+    check_outputs(args)
+    seqs, problems = [], []
+    for path in args.input:
+        try:
+            seq = _open(args, path)
+            runner.check_sequence(seq, options=options)
+        except (Vi3Error, ValueError, OSError) as exc:
+            problems.append(f"input {path}: {exc}")
+            continue
+        if seq.depth_gt.startswith("unreadable"):
+            print(f"vi3 eval: {path}: depth ground truth {seq.depth_gt}; the depth metrics will be null",
+                  file=sys.stderr)
+        seqs.append(seq)
+    if problems:
+        raise DataError("; ".join(problems))
+    names = unique_names([s.name for s in seqs])
+    outputs = output_paths(args, names)
+    backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
+    runs = []
+    for name, path, seq in zip(names, args.input, seqs):
+        # Several inputs are reopened one at a time when evaluated: bags are read into memory whole.
+        runs.append(Evaluated(name, path, seq=seq if len(seqs) == 1 else None,
+                              obj={"sequence": name, "input": path, "depth_gt": seq.depth_gt}))
+    return options, backbone, runs, outputs
+
+
+def _evaluate(args: argparse.Namespace, item: Evaluated, backbone, options) -> None:
+    """Evaluate one input into ``item``; a failure part-way keeps what was computed and names the error."""
+    from vi3_core.errors import Vi3Error
+    from vi3_core.eval import report, runner
+
+    seq, item.seq = item.seq, None
+    meta = {"backbone": args.backbone, "sequence": item.name}
+    try:
+        seq = seq if seq is not None else _open(args, item.path)
+        seq.name = item.name
+        if args.ablate:
+            variants = runner.ablate(seq, backbone, options=options)
+            summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
+            item.obj |= {"ablations": summaries}
+            item.text = report.format_ablation(summaries)
+            item.evals = next(iter(variants.values()))
+            return
+        if _chained(args):
+            item.evals, item.online = runner.evaluate_online(seq, backbone, options=options)
+        else:
+            item.evals = runner.evaluate_sequence(seq, backbone, options=options)
+    except runner.EvaluationStopped as exc:
+        item.evals, item.online, item.error = exc.evals, exc.online, str(exc)
+    except (Vi3Error, ValueError, OSError) as exc:
+        item.error = str(exc)
+        return
     if args.ablate:
-        variants = runner.ablate(seq, backbone, options=options)
-        summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
-        obj, text = {"sequence": seq.name, "ablations": summaries}, report.format_ablation(summaries)
-        evals = next(iter(variants.values()))
-    elif args.independent or args.init_source == "gt":
-        evals = runner.evaluate_sequence(seq, backbone, options=options)
-        obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
-        text = report.format_tables(obj)
-    else:
-        evals, online = runner.evaluate_online(seq, backbone, options=options)
-        obj = report.summarise(evals, mode=args.mode, init_source=args.init_source, **meta)
-        obj["chained"] = report.chained_summary(online)
-        text = report.format_tables(obj) + "\n" + report.format_chained(obj["chained"])
-    if args.plot:
-        png = Path(args.plot)
-        png = png.with_name(f"{png.stem}_{seq.name}{png.suffix}") if several else png
-        print(f"plot: {plot.save_plot(png, evals, title=f'{seq.name}: {args.backbone}, {args.mode}')}",
-              file=sys.stderr)
-    if args.export_tum:
-        out = Path(args.export_tum) / seq.name if several else Path(args.export_tum)
-        paths = tum.export_tum(out, evals) + (tum.export_chained(out, online) if online is not None else [])
-        print(f"TUM trajectories: {len(paths)} files in {out}", file=sys.stderr)
-    return obj, text, evals, online
+        return
+    summary = report.summarise(item.evals, mode=args.mode, init_source=args.init_source, **meta)
+    item.obj = {**item.obj, **summary, "input": item.path}
+    if item.online is not None:
+        item.obj["chained"] = report.chained_summary(item.online)
+    item.text = "\n\n".join([report.format_clips(item.obj), report.format_tables(item.obj)]
+                            + ([report.format_chained(item.obj["chained"], item.obj)] if item.online else []))
+
+
+def _combine(args: argparse.Namespace, runs: list[Evaluated]) -> tuple[dict, str]:
+    """The run's JSON object and text: the one sequence's, or every sequence's, an overview line per sequence and
+    the pooled clips."""
+    from vi3_core.eval import report
+
+    for r in runs:
+        if r.error:
+            r.obj["error"] = r.error
+    if len(runs) == 1:
+        return runs[0].obj, runs[0].text or f"{runs[0].name}: {runs[0].error}"
+    obj = {"sequences": [r.obj for r in runs]}
+    text = "\n\n".join(r.text for r in runs if r.text)
+    if not args.ablate:
+        text += "\n\n" + report.format_overview(obj["sequences"])
+        evals = [e for r in runs for e in r.evals]
+        done = sum(bool(r.evals) for r in runs)
+        pooled = report.summarise(evals, mode=args.mode, init_source=args.init_source, backbone=args.backbone,
+                                  sequence=f"pooled ({done} of {len(runs)} sequences)")
+        text += "\n\n" + report.format_tables(pooled)
+        if _chained(args):
+            pooled["chained"] = report.pool_chained([(r.name, r.online) for r in runs if r.online is not None])
+            text += "\n" + report.format_pooled_chained(pooled["chained"])
+        obj["pooled"] = pooled
+    return obj, text
+
+
+def _write_outputs(args: argparse.Namespace, runs: list[Evaluated], outputs: dict) -> list[str]:
+    """Plots and TUM files of every evaluated sequence, then the sigma plot; the errors of those that failed."""
+    from vi3_core.eval import claims, plot, report, tum
+
+    errors = []
+    for r in runs:
+        if not r.evals:
+            continue
+        try:
+            if r.name in outputs["plots"]:
+                png = plot.save_plot(outputs["plots"][r.name], r.evals,
+                                     title=f"{r.name}: {args.backbone}, {args.mode}")
+                print(f"plot: {png}", file=sys.stderr)
+            if r.name in outputs["tum"]:
+                out = outputs["tum"][r.name]
+                paths = tum.export_tum(out, r.evals) + (tum.export_chained(out, r.online) if r.online else [])
+                print(f"TUM trajectories: {len(paths)} files in {out}", file=sys.stderr)
+        except (OSError, ValueError) as exc:
+            errors.append(f"{r.name}: output not written: {exc}")
+    if outputs["sigma"] and not args.ablate:
+        evaluated = [r for r in runs if r.evals]
+        series = {"VI3" + (" (chained)" if _chained(args) else ""):
+                  claims.Claims.concatenate(claims.clip_claims(r.evals, "init") for r in evaluated)}
+        if _chained(args):
+            series["own init"] = claims.Claims.concatenate(report.independent_claims(r.online) for r in evaluated
+                                                           if r.online is not None)
+        try:
+            png = plot.save_sigma_plot(outputs["sigma"], series, title=f"{', '.join(r.name for r in evaluated)}: "
+                                       "scale error against its sigma (claimed clips)")
+            print(f"sigma plot: {png}", file=sys.stderr)
+        except (OSError, ValueError) as exc:
+            errors.append(f"sigma plot not written: {exc}")
+    return errors
+
+
+def _emit(args: argparse.Namespace, obj: dict, text: str, json_out: Path | None) -> None:
+    from vi3_core.eval import report
+
+    doc = report.to_json(obj)
+    print(doc if args.json else text)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(doc + "\n")

@@ -1,0 +1,94 @@
+"""How far the claimed scales can be trusted: the clips reported ``ok`` whose scale is more than ``SCALE_OUTLIER``
+off (a confident wrong scale, the number a user of a metric node cares about most), and how well each clip's own
+scale sigma (``InitResult.scale_sigma``) predicts its error.
+
+A clip's error is |Scale (Traj.) - 1| (the ratio of its metric to the true translation; clips without one, e.g.
+stationary ones, are not scored) and its relative sigma ``scale_sigma / scale``; a calibrated sigma has about 68 % /
+95 % of the errors within 1 / 2 sigma (Gaussian errors).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from vi3_core.eval.clip_eval import ClipEval
+
+SCALE_OUTLIER = 0.1
+NO_SIGMA = "no sigma: no claimed clip reports a scale sigma"
+
+
+@dataclass(frozen=True)
+class Claims:
+    """The clips that claimed a scale (status ok) and have a Scale (Traj.): errors [n] |Scale (Traj.) - 1|,
+    rel_sigma [n] their relative 1-sigma (NaN where none was reported)."""
+
+    errors: np.ndarray
+    rel_sigma: np.ndarray
+
+    @staticmethod
+    def of(errors: Iterable[float], rel_sigma: Iterable[float]) -> Claims:
+        """From per-clip values [n] (NaN error: the clip claimed no scale, or has no Scale (Traj.); dropped)."""
+        e = np.asarray(list(errors), dtype=np.float64).reshape(-1)
+        s = np.asarray(list(rel_sigma), dtype=np.float64).reshape(-1)
+        if e.shape != s.shape:
+            raise ValueError(f"Claims.of: {e.size} errors for {s.size} sigmas")
+        keep = np.isfinite(e)
+        return Claims(e[keep], s[keep])
+
+    @staticmethod
+    def concatenate(parts: Iterable[Claims]) -> Claims:
+        parts = list(parts)
+        return Claims(np.concatenate([np.zeros(0), *(p.errors for p in parts)]),
+                      np.concatenate([np.zeros(0), *(p.rel_sigma for p in parts)]))
+
+    def outliers(self) -> dict:
+        """``count`` of claimed clips more than SCALE_OUTLIER off, of ``claimed``, and their ``share`` (None when
+        nothing was claimed)."""
+        n, bad = len(self.errors), int((self.errors > SCALE_OUTLIER).sum())
+        return {"count": bad, "claimed": n, "share": bad / n if n else None}
+
+    def calibration(self) -> dict:
+        """``with_sigma``: claimed clips that report a sigma; ``within_1sigma`` / ``within_2sigma``: the share of
+        those whose error is within 1 / 2 relative sigma (None, and ``note`` NO_SIGMA, when none reports one)."""
+        has = np.isfinite(self.rel_sigma) & (self.rel_sigma >= 0)
+        e, s = self.errors[has], self.rel_sigma[has]
+        out = {"claimed": len(self.errors), "with_sigma": int(has.sum()),
+               "within_1sigma": float(np.mean(e <= s)) if e.size else None,
+               "within_2sigma": float(np.mean(e <= 2.0 * s)) if e.size else None}
+        return out if e.size else {**out, "note": NO_SIGMA}
+
+
+def rel_sigma(e: ClipEval) -> float:
+    """The clip's relative scale sigma ``scale_sigma / scale`` (NaN when unknown)."""
+    init = e.result.init
+    return float(init.scale_sigma / init.scale) if init.scale > 0 else float("nan")
+
+
+def scale_error(e: ClipEval, column: str) -> float:
+    """|Scale (Traj.) - 1| of the clip's ``column`` (NaN when it has none)."""
+    return abs(e.columns[column].scale_traj - 1.0) if column in e.columns else float("nan")
+
+
+def clip_claims(evals: Sequence[ClipEval], column: str) -> Claims:
+    """The claims of the evaluated clips' ``column`` ("init", "cond", "ttr": the VI3 output; "init" is what the
+    sigma describes), with the initialisation's relative sigma."""
+    ok = [e for e in evals if e.ok]
+    return Claims.of((scale_error(e, column) for e in ok), (rel_sigma(e) for e in ok))
+
+
+def format_outliers(outliers: dict) -> str:
+    """'k of n (x %)' for ``Claims.outliers``."""
+    if not outliers["claimed"]:
+        return "none claimed"
+    return f"{outliers['count']} of {outliers['claimed']} ({100.0 * outliers['share']:.1f} %)"
+
+
+def format_calibration(cal: dict) -> str:
+    """One phrase for ``Claims.calibration``."""
+    if not cal["with_sigma"]:
+        return "no sigma"
+    return (f"{100.0 * cal['within_1sigma']:.0f} % within 1 sigma, {100.0 * cal['within_2sigma']:.0f} % within "
+            f"2 sigma (of {cal['with_sigma']} of {cal['claimed']} claimed clips with a sigma)")
