@@ -194,7 +194,7 @@ def _prepare(args: argparse.Namespace) -> tuple:
         hop=args.hop, max_clips=args.max_clips, progress=not args.no_progress,
         anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
     check_outputs(args)
-    seqs, problems = [], []
+    runs, problems = [], []
     for path in args.input:
         try:
             seq = _open(args, path)
@@ -205,17 +205,15 @@ def _prepare(args: argparse.Namespace) -> tuple:
         if seq.depth_gt.startswith("unreadable"):
             print(f"vi3 eval: {path}: depth ground truth {seq.depth_gt}; the depth metrics will be null",
                   file=sys.stderr)
-        seqs.append(seq)
+        # Several inputs are reopened one at a time when evaluated: bags are read into memory whole.
+        runs.append(Evaluated(seq.name, path, seq=seq if len(args.input) == 1 else None,
+                              obj={"input": path, "depth_gt": seq.depth_gt}))
     if problems:
         raise DataError("; ".join(problems))
-    names = unique_names([s.name for s in seqs])
-    outputs = output_paths(args, names)
+    for item, name in zip(runs, unique_names([r.name for r in runs])):
+        item.name, item.obj = name, {"sequence": name, **item.obj}
+    outputs = output_paths(args, [r.name for r in runs])
     backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
-    runs = []
-    for name, path, seq in zip(names, args.input, seqs):
-        # Several inputs are reopened one at a time when evaluated: bags are read into memory whole.
-        runs.append(Evaluated(name, path, seq=seq if len(seqs) == 1 else None,
-                              obj={"sequence": name, "input": path, "depth_gt": seq.depth_gt}))
     return options, backbone, runs, outputs
 
 
