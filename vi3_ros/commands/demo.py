@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
 == done in {time.perf_counter() - t_all:.0f} s. Outputs in {out}/:
    {mcap}   what the node publishes (poses, depth 32FC1, PointCloud2, TF, status), rosbag2 MCAP
    {png}          top-down trajectories (GT black, base red, IMU blue, VI3 green) and point cloud
+   {png.with_name(png.stem + "_sigma.png")}    each claimed clip's scale error against its scale sigma
    {report_json}         the metrics as JSON (schema: docs/evaluation.md)
    {tum_dir}/               TUM trajectories for evo, e.g. evo_traj tum {tum_dir}/clip000_*.txt -p
 
