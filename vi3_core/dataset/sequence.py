@@ -75,7 +75,8 @@ class Sequence:
     stamps: [N] cam0 stamps, float64 s; stamps_ns: [N] the same stamps as recorded, int64 ns; imu: all IMU
     samples (imu_ns: their int64 ns stamps); calib: cam0 calibration (None when the source has none);
     gt: ground-truth track (None when absent). Images and depth are loaded on demand by ``load_image(i)``
-    (raw mono8 [H,W] uint8, as recorded) and ``load_depth(i)`` (z-depth of the undistorted image, or None).
+    (raw mono8 [H,W] uint8, as recorded) and ``load_depth(i)`` (z-depth of the undistorted image, or None);
+    has_images: False for a recording of IMU and ground truth only (its stamps are placed on the IMU clock).
     """
 
     name: str
@@ -87,6 +88,7 @@ class Sequence:
     load_depth: Callable[[int], np.ndarray | None] | None = field(default=None, repr=False)
     stamps_ns: np.ndarray | None = None
     imu_ns: np.ndarray | None = None
+    has_images: bool = True
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -100,10 +102,12 @@ class Sequence:
         return None if self.load_depth is None else self.load_depth(int(i))
 
 
-def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0) -> Clip:
-    """The clip of frames ``indices`` [n]: undistorted images, ``calib.undistorter().K``, ``T_BC``, the IMU window
-    with >= 1 sample beyond each end, ``imu_history`` (the ``history_s`` seconds before the clip, plus the clip),
-    and ground truth at the stamps when the track covers them (depth maps included when ``with_depth``)."""
+def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0,
+              with_images: bool = True) -> Clip:
+    """The clip of frames ``indices`` [n]: undistorted images (an empty [n,0,0] array without ``with_images``),
+    ``calib.undistorter().K``, ``T_BC``, the IMU window with >= 1 sample beyond each end, ``imu_history`` (the
+    ``history_s`` seconds before the clip, plus the clip), and ground truth at the stamps when the track covers them
+    (depth maps included when ``with_depth``)."""
     if seq.calib is None:
         raise DataError(f"sequence {seq.name!r} has no camera calibration; cannot undistort its images")
     idx = np.asarray(indices, dtype=np.int64)
@@ -111,7 +115,7 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
         raise DataError(f"clip indices {idx.tolist()} out of range for {len(seq)} frames of {seq.name!r}")
     stamps = seq.stamps[idx]
     und = seq.calib.undistorter()
-    images = np.stack([und.apply(seq.image(i)) for i in idx])
+    images = np.stack([und.apply(seq.image(i)) for i in idx]) if with_images else np.zeros((len(idx), 0, 0), np.uint8)
     imu = seq.imu.window(stamps[0], stamps[-1], margin=1)
     if len(imu) == 0 or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
         raise DataError(f"IMU of {seq.name!r} does not cover the clip [{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
