@@ -82,7 +82,7 @@ def test_error_model_claims_only_what_its_sigma_supports():
     below the limit, every other clip unobservable with its sigma (or its missing excitation) in the reason."""
     claimed, errs = 0, []
     for i in range(100):
-        case = make_init_case(i, pose_noise=PoseNoise(pos_m=0.0005, rot_deg=0.03))
+        case = make_init_case(i, pose_noise=PoseNoise(pos_m=0.0003, rot_deg=0.02))
         r = _run(case)
         if r.ok:
             claimed += 1

@@ -101,7 +101,8 @@ def _window_case(seed: int, n_clips: int, pose_noise: PoseNoise, *, ba=(0.1, -0.
 
 
 def _solve_window(imu, clips, bg, g, T_BC, sigma_v, priors=()):
-    clips = [FitClip(c.stamps, c.T_wc, sigma_v) for c in clips]
+    """``sigma_v``: each clip's visual noise in its model units [K] (or one value for all)."""
+    clips = [FitClip(c.stamps, c.T_wc, s) for c, s in zip(clips, np.broadcast_to(sigma_v, len(clips)))]
     pre = preintegrate(imu.window(clips[0].stamps[0], clips[-1].stamps[-1]), fit_stamps(clips), bg, jacobians=True)
     fit = MetricFit(clips, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81)
     return fit, fit.solve(fit.initial_state(g), priors=priors)
@@ -109,7 +110,7 @@ def _solve_window(imu, clips, bg, g, T_BC, sigma_v, priors=()):
 
 def test_window_recovers_every_scale_gravity_and_the_accel_bias():
     imu, clips, scales, bg, g, T_BC = _window_case(1, 8, REALISTIC)
-    _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / np.median(scales))
+    _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
     assert np.all(np.abs(res.scale / scales - 1) < 3 * res.scale_rel_sigma), (res.scale / scales, res.scale_rel_sigma)
     assert np.median(np.abs(res.scale / scales - 1)) < 0.03
     assert np.degrees(so3.angle_between(res.state.g, g[0])) < 1.0
@@ -123,7 +124,7 @@ def test_window_makes_weak_clips_observable_that_are_not_on_their_own():
         pre = preintegrate(imu, fit_stamps([c]), bg, jacobians=True)
         fit = MetricFit([c], pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81)
         own.append(fit.solve(fit.initial_state(g_k)).scale_rel_sigma[0])
-    _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / np.median(scales))
+    _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
     assert np.median(res.scale_rel_sigma) < 0.5 * np.median(own), (res.scale_rel_sigma, own)
 
 
@@ -131,15 +132,15 @@ def test_marginalising_old_clips_keeps_their_evidence():
     """Dropping the first clips into a prior leaves the remaining estimates where the full window put them (up to what
     the prior deliberately loses: the biases' random walk, and the ties' and the fit's variance factors)."""
     imu, clips, scales, bg, g, T_BC = _window_case(3, 7, REALISTIC)
-    fit, full = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.002)
+    fit, full = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
     for drop in (1, 3):
         prior = fit.marginalise(full, drop)
         R_f = fit.pre.R[fit.blocks[drop].first]
-        _, reduced = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.002,
+        _, reduced = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.003 / scales[drop:],
                                    priors=(prior,))
         assert np.all(np.abs(reduced.scale / full.scale[drop:] - 1) < 0.5 * full.scale_rel_sigma[drop:])
         assert np.degrees(so3.angle_between(reduced.state.g, R_f.T @ full.state.g)) < 0.05
-        alone = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.002)[1]
+        alone = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.003 / scales[drop:])[1]
         assert np.median(reduced.scale_rel_sigma) < np.median(alone.scale_rel_sigma)  # the prior carries evidence
 
 

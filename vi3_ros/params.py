@@ -152,7 +152,7 @@ PARAMS: tuple[Param, ...] = (
     _option("max_rotation_error", InitOptions, "max_rotation_deg", "deg; a clip whose backbone relative rotations "
             "disagree with the bias-corrected gyro by more is a backbone failure (rejected)", range=(0.01, 180.0)),
     _option("accel_noise_density", InitOptions, "accel_noise_density", "m/s^2/sqrt(Hz); accelerometer noise of the "
-            "error model (EuRoC's datasheet x 5)", range=(0.0, 10.0)),
+            "error model (EuRoC's datasheet x 10)", range=(0.0, 10.0)),
     _option("gyro_noise_density", InitOptions, "gyro_noise_density", "rad/s/sqrt(Hz); gyro noise of the error model "
             "(EuRoC's datasheet x 5)", range=(0.0, 10.0)),
     _option("gyro_scale_error", InitOptions, "gyro_scale_error", "relative error of the integrated rotation in the "

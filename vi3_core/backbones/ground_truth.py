@@ -32,6 +32,7 @@ class GroundTruthPoses(Backbone):
         super().__init__(device=device, dtype=dtype)
         self.noise, self.seed = noise or PoseNoise(), int(seed)
         self._clip: Clip | None = None
+        self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
     def bind(self, clip: Clip) -> None:
         """The clip whose ground truth the next prediction uses."""
@@ -50,7 +51,7 @@ class GroundTruthPoses(Backbone):
         clip = self._clip
         T_gt = gt_camera_poses(clip.gt, clip.T_BC)
         dist = float(np.linalg.norm(T_gt[:, :3, 3], axis=1).mean())
-        scale = dist if dist > 0 else 1.0  # metres per model unit
+        scale = self.last_scale = dist if dist > 0 else 1.0  # metres per model unit
         rng = np.random.default_rng([self.seed, int(round(float(clip.stamps[0]) * 1e6))])
         T = noisy_poses(T_gt, scale=scale, noise=self.noise, rng=rng)
         depth = clip.gt.depth / scale if clip.gt.depth is not None else np.full((clip.n, 1, 1), np.nan)

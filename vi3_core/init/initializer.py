@@ -21,6 +21,7 @@ from vi3_core.init.options import InitOptions
 from vi3_core.init.position_fit import body_position_terms
 from vi3_core.init.velocity_gravity import ScaleGravitySystem
 from vi3_core.preintegration import interval_gyro_mean, merged_grid, preintegrate
+from vi3_core.threads import single_blas_thread
 from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus
 
 
@@ -82,7 +83,12 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
     by name ("orientation", "geocalib", "long_window"; see ``gravity_seeds``); imu_history: seconds of IMU
     around the clip for the long-window seed. Bad data yields status ``rejected`` with the reason, never raises.
     """
-    options = options or InitOptions()
+    with single_blas_thread():
+        return _initialise(geometry, imu, stamps, T_BC, options or InitOptions(), seeds, imu_history)
+
+
+def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np.ndarray, options: InitOptions,
+                seeds: dict[str, np.ndarray] | None, imu_history: ImuSamples | None) -> InitResult:
     stamps = np.asarray(stamps, dtype=np.float64)
     reason = (validate.check_stamps(stamps) or validate.check_geometry(geometry, len(stamps))
               or validate.check_imu(imu, stamps, options))

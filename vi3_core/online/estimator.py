@@ -33,6 +33,7 @@ from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
 from vi3_core.online.options import OnlineOptions
 from vi3_core.online.window import Member, Window
 from vi3_core.preintegration import preintegrate
+from vi3_core.threads import single_blas_thread
 from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus
 
 
@@ -112,6 +113,7 @@ class OnlineEstimator:
         self._imu: ImuSamples | None = None
         self._bgs: list[tuple[float, np.ndarray]] = []  # (first stamp, own gyro-bias estimate) of recent clips
         self._rejects = 0
+        self._window_claimed = False  # the window (since its last restart) has claimed a scale
         self._last_start: float | None = None  # first frame of the previous clip seen, s
         self._pending: tuple[float, Placement] | None = None
 
@@ -196,6 +198,10 @@ class OnlineEstimator:
 
     def initialise(self, clip: Clip, geometry: Geometry) -> InitResult:
         """The clip's InitResult from the window fit (see the module docstring)."""
+        with single_blas_thread():
+            return self._initialise(clip, geometry)
+
+    def _initialise(self, clip: Clip, geometry: Geometry) -> InitResult:
         o, io = self.options, self.init_options
         self._remember_imu(clip)
         free = initialise_clip(clip, geometry, options=io)
@@ -212,6 +218,12 @@ class OnlineEstimator:
             return self._decide(InitResult(InitStatus.REJECTED, why, bg=bg, diagnostics=dict(free.diagnostics)),
                                 replace(decision, rejected={"clip": why}), free)
         d = free.diagnostics
+        if not (d["fit_lam"] > 0 and np.isfinite(d["scale_rel_sigma"])):
+            # Poses that carry no scale (no translation, or motion opposite to the IMU's) would only add noise that
+            # the window cannot weigh: the clip stays out, the window goes on.
+            why = f"its own poses carry no scale ({free.reason})"
+            return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable: {why}", bg=bg,
+                                           diagnostics=dict(d)), replace(decision, rejected={"clip": why}), free)
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
                         sigma_v=float(d["sigma_v_model"]), lam=float(d["fit_lam"]), v=np.asarray(d["fit_v1"]),
                         g=np.asarray(free.g))
@@ -219,7 +231,7 @@ class OnlineEstimator:
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)
             self.window.restart(ba_widen=io.accel_bias_walk**2 * max(gap, 0.0))
-            self._rejects = 0
+            self._rejects, self._window_claimed = 0, False
         self._last_start = t1
         sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
         k = len(sol.members) - 1
@@ -231,12 +243,16 @@ class OnlineEstimator:
             self._rejects += 1
             why = (f"normalised residual {chi2 / dof:.2f} over {dof:.1f} degrees of freedom (p = {p:.1e} < "
                    f"{o.consistency_p:g}) in a window of {k + 1} clips")
-            if self._rejects < o.max_rejects:
+            # A window that has not claimed a scale yet has nothing to defend: the clip that disagrees with it
+            # starts a new one (after a hover or a stretch of bad data the new clip is as likely to be right).
+            if self._rejects < o.max_rejects and self._window_claimed:
                 return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {why}",
                                                bg=bg, diagnostics=dict(d)),
                                     replace(decision, rejected={"clip": why}), free)
-            reset = f"{self._rejects} clips in a row inconsistent with the window"
+            reset = (f"{self._rejects} clips in a row inconsistent with the window" if self._window_claimed
+                     else f"inconsistent with a window that claimed no scale yet ({why})")
             self.window.restart()
+            self._window_claimed = False
             sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
             k, res = 0, sol.result
         self._rejects = 0
@@ -255,6 +271,7 @@ class OnlineEstimator:
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, diagnostics=diag),
                                 decision, free)
         target = preintegrate(clip.imu, clip.stamps, st.bg, st.ba).propagate(g_k, v_k, clip.T_BC)
+        self._window_claimed = True
         return self._decide(InitResult(InitStatus.OK, f"ok (online window of {k + 1} clips)", bg=st.bg, g=g_k,
                                        scale=s, scale_sigma=rel * s, ba=st.ba, v1=v_k, gravity_source="online_window",
                                        target=target, diagnostics=diag), decision, free)
@@ -276,8 +293,9 @@ class OnlineEstimator:
         T_B1B = T_BC @ result.geometry.T_wc @ so3.inv_T(T_BC)  # metric body poses in B1
         T_OB = so3.make_T(R_OB1, place.p_OB1) @ T_B1B
         v_O = target.v @ R_OB1.T
-        if place.new_segment and self.state is not None:
-            self.trajectory.resets.append(float(clip.stamps[0]))
+        if place.new_segment and self.state is not None:  # the segment starts at the clip's first new frame
+            last = self.trajectory.stamps[-1] if len(self.trajectory.stamps) else -np.inf
+            self.trajectory.resets.append(float(clip.stamps[np.argmax(clip.stamps > last)]))
         d = init.diagnostics
         self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg),
                                np.asarray(init.ba), float(d.get("v1_sigma", 0.0)),

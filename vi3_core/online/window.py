@@ -20,6 +20,8 @@ from vi3_core.init.metric_fit import FitClip, FitResult, GaussianPrior, ImuNoise
 from vi3_core.preintegration import preintegrate
 from vi3_core.types import ImuSamples
 
+BA_FLOOR = 0.01  # m/s^2: no window's accelerometer-bias estimate is carried across a restart as better than this
+
 
 @dataclass
 class Member:
@@ -69,10 +71,12 @@ class Window:
         """Drop the members and the marginal prior; the accelerometer bias's last estimate survives as a prior, its
         covariance widened by ``ba_widen`` (m/s^2)^2 per axis (its random walk over the gap)."""
         self.members, self.prior = [], None
-        if self.ba is not None:
+        if self.ba is not None and np.all(np.isfinite(self.ba[0])) and np.all(np.isfinite(self.ba[1])):
             mean, cov = self.ba
+            w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+            cov = (V * np.maximum(w, BA_FLOOR**2)) @ V.T + ba_widen * np.eye(3)
             sqrt_info = np.zeros((3, 12))
-            sqrt_info[:, 3:6] = np.linalg.cholesky(np.linalg.inv(cov + ba_widen * np.eye(3))).T
+            sqrt_info[:, 3:6] = np.linalg.cholesky(np.linalg.inv(cov)).T
             self.prior = GaussianPrior(np.concatenate([np.zeros(3), mean, np.zeros(6)]), sqrt_info, np.zeros(3))
 
     def solve(self, new: Member, imu: ImuSamples, bg: np.ndarray, bg_sigma: float, T_BC: np.ndarray) -> Solution:
