@@ -31,6 +31,7 @@ setup(
         "mcap-ros2-support>=0.5",
         "matplotlib>=3.7",
         "tqdm>=4.60",
+        "threadpoolctl>=3.1",
         "pyyaml>=6.0",
     ],
     extras_require={

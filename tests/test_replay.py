@@ -99,8 +99,13 @@ def _statuses(msgs: dict[str, list], topic: str = "/vi3_node/status"):
     return [s for m in msgs.get(topic, []) for s in diagnostic_array_to_statuses(m)]
 
 
+#: The fault and plumbing tests below check what replay does with a clip, not which clips may claim a scale (the
+#: error model's gate, tests/test_init.py and tests/test_online.py): on 2.5 s bags of two clips the gate stays open.
+OPEN_GATE = {"max_scale_sigma": 10.0}
+
+
 def _run(inp: Path, out: Path, **params) -> tuple[object, dict[str, list]]:
-    values = resolve({"calib_file": str(params.pop("calib", _calib_file(out.parent))), **params})
+    values = resolve({"calib_file": str(params.pop("calib", _calib_file(out.parent))), **OPEN_GATE, **params})
     summary = replay(inp, out, values=values, progress=False)
     return summary, _read(out)
 
@@ -138,9 +143,14 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
     msgs = _read(out)
     poses = msgs["/vi3_node/poses"]
     n_clips = sum(start + CLIP_FRAMES - 2 < len(seq.stamps) for start in range(0, len(seq.stamps), CLIP_FRAMES))
-    assert len(poses) == n_clips == 5  # one PoseArray per clip
+    statuses = _statuses(msgs)
+    claimed = [int(s.values["clip"]) for s in statuses if s.values["result"] == "init"]
+    # One PoseArray per claimed clip; a clip is claimed once the online window's error model supports its scale
+    # (the first clip of a stream, on its own, rarely is), and says why not otherwise.
+    assert len(statuses) == n_clips == 5 and len(poses) == len(claimed) >= n_clips - 2
+    assert all(s.values["init_status"] == "ok" or "relative sigma" in s.values["reason"] for s in statuses)
     scales = []
-    for k, pa in enumerate(poses):
+    for k, pa in zip(claimed, poses):
         idx = k * CLIP_FRAMES + np.arange(0, CLIP_FRAMES, 2)
         assert stamp_to_ns(pa.header.stamp) == seq.stamps_ns[idx[-1]] and pa.header.frame_id == "vi3_clip"
         T = poses_to_T(pa.poses)
@@ -148,8 +158,9 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
         scales.append(scale_traj(T, seq.gt.at(seq.stamps[idx]).T_WB @ seq.calib.T_BC))
     assert 0.9 <= np.median(scales) <= 1.1, scales  # Scale (Traj.) of the fast path: metric
     depth = msgs["/vi3_node/depth"]
-    assert len(depth) == 8 * n_clips and {d.encoding for d in depth} == {"32FC1"}
-    assert [stamp_to_ns(d.header.stamp) for d in depth[:8]] == seq.stamps_ns[:CLIP_FRAMES:2].tolist()
+    assert len(depth) == 8 * len(claimed) and {d.encoding for d in depth} == {"32FC1"}
+    first = claimed[0] * CLIP_FRAMES
+    assert [stamp_to_ns(d.header.stamp) for d in depth[:8]] == seq.stamps_ns[first:first + CLIP_FRAMES:2].tolist()
     d0 = image_to_numpy(depth[0])
     assert d0.dtype == np.float32 and np.nanmedian(d0) > 0.3
     for pc in msgs["/vi3_node/points"]:
@@ -157,9 +168,7 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
         assert cloud.dtype.names == ("x", "y", "z", "confidence") and pc.point_step == 16
         assert pc.height == 1 and pc.width == len(cloud) > 100 and pc.row_step == 16 * pc.width
         assert np.isfinite(cloud["z"]).all()
-    statuses = _statuses(msgs)
-    assert [s.values["result"] for s in statuses] == ["init"] * n_clips
-    assert all(s.values["init_status"] == "ok" and float(s.values["scale"]) > 0 for s in statuses)
+    assert all(float(s.values["scale"]) > 0 for s in statuses if s.values["result"] == "init")
     assert "/diagnostics" in msgs
     # the same file through mcap + mcap-ros2-support
     with out.open("rb") as f:
@@ -180,7 +189,8 @@ def test_replay_is_deterministic_and_refined_results_follow_init(bag3, tmp_path)
     runs = []
     for name in ("a.mcap", "b.mcap"):
         assert vi3_main(["replay", str(mcap), "--output", str(tmp_path / name), "--calib", str(_calib_file(tmp_path)),
-                         "--mode", "ttr", "--no-progress", "--param", "ttr_steps=2", "--param", "publish_tf=true"]) == 0
+                         "--mode", "ttr", "--no-progress", "--param", "ttr_steps=2", "--param", "publish_tf=true",
+                         "--param", "max_scale_sigma=10"]) == 0
         runs.append(_read(tmp_path / name))
     a, b = runs
     assert a.keys() == b.keys()
@@ -321,6 +331,7 @@ def test_fault_stationary_stretch(bag3, tmp_path):
     assert "unobservable" in first.values["reason"]
     assert first.level >= 1 and first.values["reason"]
     assert any(first.values["reason"] in m for m in _diag_messages(msgs))
+    assert "/vi3_node/poses" in msgs, _outcomes(msgs)
     assert stamp_to_ns(msgs["/vi3_node/poses"][0].header.stamp) > t1
     _assert_recovers(msgs, 0)
 

@@ -62,7 +62,7 @@ def test_option_defaults_come_from_the_option_dataclasses():
     assert (options(ClipBufferOptions, changed).n, options(ClipBufferOptions, changed).hop) == (5, 3)
     assert options(OnlineOptions, changed).window_s == 4.0 and options(AnchorOptions, changed).steps == 7
     assert options(InitOptions, changed).max_imu_gap_s == 0.02
-    assert buffer_options(values).history == values["online_max_gap"]  # online: IMU history covers the bridge
+    assert buffer_options(values).history == values["online_max_bridge"]  # online: IMU history covers the bridge
     assert buffer_options({**values, "online": False}).history == ClipBufferOptions().history
 
 

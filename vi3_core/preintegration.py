@@ -61,11 +61,27 @@ def merged_grid(imu: ImuSamples, stamps: np.ndarray) -> Grid:
 
 
 @dataclass(frozen=True)
+class BiasJacobians:
+    """First-order effect of bias changes on the preintegration at the n stamps, each [n,3,3].
+
+    phi_bg: rad per rad/s, R_B1Bi(bg + d) = Exp(phi_bg d) R_B1Bi(bg) (a rotation in B1); beta_bg, alpha_bg: m/s and m
+    per rad/s (the specific force turned by that rotation, integrated once and twice); beta_ba, alpha_ba: s and s^2,
+    exact for any ba (the force is R (a - ba), linear in ba).
+    """
+
+    phi_bg: np.ndarray
+    beta_bg: np.ndarray
+    alpha_bg: np.ndarray
+    beta_ba: np.ndarray
+    alpha_ba: np.ndarray
+
+
+@dataclass(frozen=True)
 class Preintegration:
     """Preintegrated IMU at n stamps, in B1 (see the module docstring).
 
     stamps, tau: [n] s; R: [n,3,3] R_B1Bi; beta: [n,3] m/s; alpha: [n,3] m; gyro_mean: [n-1,3] rad/s time
-    average of the raw gyro over each frame interval; bg, ba: [3] the biases used.
+    average of the raw gyro over each frame interval; bg, ba: [3] the biases used; J: the bias Jacobians when asked.
     """
 
     stamps: np.ndarray
@@ -76,6 +92,18 @@ class Preintegration:
     gyro_mean: np.ndarray
     bg: np.ndarray
     ba: np.ndarray
+    J: BiasJacobians | None = None
+
+    def corrected(self, bg: np.ndarray, ba: np.ndarray) -> Preintegration:
+        """The preintegration for biases (bg, ba) near the ones used, to first order through ``J`` (Forster et al.'s
+        bias update; exact in ba, error O(|bg - self.bg|^2) in bg); requires ``jacobians=True``."""
+        if self.J is None:
+            raise ValueError("Preintegration.corrected needs the bias Jacobians (preintegrate(..., jacobians=True))")
+        J, dbg, dba = self.J, np.asarray(bg, np.float64) - self.bg, np.asarray(ba, np.float64) - self.ba
+        return Preintegration(stamps=self.stamps, tau=self.tau, R=so3.exp(J.phi_bg @ dbg) @ self.R,
+                              beta=self.beta + J.beta_bg @ dbg + J.beta_ba @ dba,
+                              alpha=self.alpha + J.alpha_bg @ dbg + J.alpha_ba @ dba, gyro_mean=self.gyro_mean,
+                              bg=self.bg + dbg, ba=self.ba + dba, J=J)
 
     def propagate(self, g: np.ndarray, v1: np.ndarray, T_BC: np.ndarray | None = None) -> ImuTrajectory:
         """Metric states at the stamps for gravity g [3] and first-frame velocity v1 [3], both in B1.
@@ -107,30 +135,33 @@ def interval_gyro_mean(grid: Grid) -> np.ndarray:
 
 
 def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.ndarray | None = None, *,
-                 grid: Grid | None = None) -> Preintegration:
+                 grid: Grid | None = None, jacobians: bool = False) -> Preintegration:
     """Preintegrate ``imu`` from stamps[0] to every stamp (see the module docstring for the scheme).
 
     imu must cover [stamps[0], stamps[-1]] (validated by the caller); stamps [n] strictly increasing, s.
-    ``grid`` (from ``merged_grid(imu, stamps)``) may be passed to reuse it across bias estimates.
+    ``grid`` (from ``merged_grid(imu, stamps)``) may be passed to reuse it across bias estimates; ``jacobians`` adds
+    the bias Jacobians (``BiasJacobians``) from the same pass.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     bg = np.asarray(bg, dtype=np.float64)
     ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
     grid = grid or merged_grid(imu, stamps)
+    dt = np.diff(grid.t)
     R = integrate_rotations(grid, bg)
-    beta, alpha = _integrate_force(np.einsum("kij,kj->ki", R, grid.accel - ba), np.diff(grid.t))
+    force = np.einsum("kij,kj->ki", R, grid.accel - ba)
+    beta, alpha = _integrate_force(force, dt)
     fi = grid.frame_idx
+    J = None
+    if jacobians:
+        # A bias change d turns every step by -d dt in its own frame, i.e. by about -R d dt in B1 (R at the step's
+        # midpoint): the rotations gain Exp(phi_k d) on the left, phi_k = -sum_(j<k) (R_j + R_(j+1)) / 2 dt_j, and the
+        # force f_k gains -hat(f_k) phi_k d.
+        phi = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(-0.5 * (R[:-1] + R[1:]) * dt[:, None, None], axis=0)])
+        beta_bg, alpha_bg = _integrate_force(-so3.hat(force) @ phi, dt)
+        beta_ba, alpha_ba = _integrate_force(-R, dt)
+        J = BiasJacobians(phi[fi], beta_bg[fi], alpha_bg[fi], beta_ba[fi], alpha_ba[fi])
     return Preintegration(stamps=stamps, tau=stamps - stamps[0], R=R[fi], beta=beta[fi], alpha=alpha[fi],
-                          gyro_mean=interval_gyro_mean(grid), bg=bg, ba=ba)
-
-
-def accel_bias_jacobians(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, *,
-                         grid: Grid | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """d beta / d ba and d alpha / d ba at the stamps, [n,3,3] each (s and s^2): beta and alpha are linear in ba
-    (the force is R (a - ba)), so these are exact for any ba with the same scheme as ``preintegrate``."""
-    grid = grid or merged_grid(imu, stamps)
-    J_beta, J_alpha = _integrate_force(-integrate_rotations(grid, bg), np.diff(grid.t))
-    return J_beta[grid.frame_idx], J_alpha[grid.frame_idx]
+                          gyro_mean=interval_gyro_mean(grid), bg=bg, ba=ba, J=J)
 
 
 def _integrate_force(f: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -171,8 +171,9 @@ class InitResult:
     """GT-free inertial initialisation of one clip (paper Sec. "Inertial state initialization").
 
     bg: [3] gyro bias rad/s; g: [3] gravity in B1, m/s^2; scale: s with metric = s * model translation;
-    scale_sigma: absolute 1-sigma of ``scale``, same units (NaN when unknown; ``scale_sigma / scale`` is the
-    relative error the evaluation checks against the truth);
+    scale_sigma: absolute 1-sigma of ``scale`` (same units; NaN when no error model produced it, inf when the data
+    do not determine the scale; ``scale_sigma / scale`` is the relative error the evaluation checks against the
+    truth); ba: [3] accelerometer bias m/s^2 (zeros where not estimated);
     v1: [3] body velocity at the first frame in B1, m/s; gravity_source: which estimate was adopted;
     consensus_deg: angle between the fixed points of the seeds (Eq. guard), NaN with a single seed;
     status/reason: see ``InitStatus``; target: the metric IMU trajectory (None unless status is ok).
@@ -183,8 +184,9 @@ class InitResult:
     bg: np.ndarray = field(default_factory=lambda: np.zeros(3))
     g: np.ndarray = field(default_factory=lambda: np.array([np.nan] * 3))
     scale: float = float("nan")
-    v1: np.ndarray = field(default_factory=lambda: np.array([np.nan] * 3))
     scale_sigma: float = float("nan")
+    ba: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    v1: np.ndarray = field(default_factory=lambda: np.array([np.nan] * 3))
     gravity_source: str = ""
     consensus_deg: float = float("nan")
     iterations: int = 0

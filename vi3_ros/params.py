@@ -23,7 +23,7 @@ import yaml
 from vi3_core.anchor.options import MODES, AnchorOptions
 from vi3_core.backbones import BACKBONES
 from vi3_core.errors import DataError
-from vi3_core.init.options import InitOptions
+from vi3_core.init.options import SCALE_SOLVERS, InitOptions
 from vi3_core.online.options import OnlineOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
 
@@ -74,11 +74,11 @@ class Param:
 
 
 def _option(name: str, cls: type, field: str, description: str, *, range: tuple[float, float] | None = None,
-            none_as: bool | int | float | str | None = None) -> Param:
+            choices: tuple[str, ...] = (), none_as: bool | int | float | str | None = None) -> Param:
     """The parameter that sets ``cls.field``; its default is the field's default (``none_as`` where that is None)."""
     default = {f.name: f.default for f in dataclasses.fields(cls)}[field]
-    return Param(name, none_as if default is None else default, description, range=range, option=(cls, field),
-                 none_as=none_as)
+    return Param(name, none_as if default is None else default, description, range=range, choices=choices,
+                 option=(cls, field), none_as=none_as)
 
 
 PARAMS: tuple[Param, ...] = (
@@ -105,35 +105,20 @@ PARAMS: tuple[Param, ...] = (
     Param("outputs_in_odom", False, "express ~/poses and ~/points in odom_frame instead of clip_frame (online only; "
           "a clip that is not chained keeps clip_frame)"),
     Param("path_max_poses", 5000, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
-    _option("online_window", OnlineOptions, "window_s", "s; clips of this long are fitted jointly (gravity, "
-            "velocities, accelerometer bias shared through the IMU; one scale per clip)", range=(0.5, 60.0)),
-    _option("online_max_gap", OnlineOptions, "max_gap_s", "s; a longer gap between clips restarts the window "
-            "(GT-free initialisation)", range=(0.01, 3600.0)),
-    _option("online_velocity_link", OnlineOptions, "velocity_link_s", "weight (m per m/s) of the IMU tie between "
-            "consecutive clips' velocities in the window", range=(0.0001, 1000.0)),
-    _option("online_ba_weight", OnlineOptions, "ba_weight", "weight (m per m/s^2) of the zero-accelerometer-bias "
-            "prior of the window", range=(0.0001, 1000.0)),
-    _option("online_residual_ratio", OnlineOptions, "residual_ratio", "a clip is inconsistent with the window when "
-            "a clip's position residual exceeds this times the last window's median (and online_residual_floor)",
-            range=(1.0, 1000.0)),
-    _option("online_residual_floor", OnlineOptions, "residual_floor_m", "m; position residual always tolerated in "
-            "the window", range=(0.0001, 100.0)),
+    _option("online_window", OnlineOptions, "window_s", "s; clips starting within this of the newest are fitted "
+            "jointly (gravity and biases shared, velocities tied through the IMU, one scale per clip); older ones are "
+            "marginalised into a prior", range=(0.5, 60.0)),
+    _option("online_max_clips", OnlineOptions, "max_clips", "at most this many clips in the window", range=(1, 100)),
+    _option("online_max_bridge", OnlineOptions, "max_bridge_s", "s; the longest gap between clips the IMU bridges "
+            "(clips a busy worker dropped); longer, or IMU missing: the window restarts", range=(0.1, 3600.0)),
+    _option("online_max_bridge_sigma", OnlineOptions, "max_bridge_sigma_m", "m; a clip placed through a bridge whose "
+            "position 1-sigma exceeds this starts a new odom segment", range=(0.001, 1000.0)),
+    _option("online_consistency_p", OnlineOptions, "consistency_p", "a clip whose residual in the window has a "
+            "chi-square tail probability below this is inconsistent (rejected)", range=(1e-12, 0.5)),
     _option("online_max_rejects", OnlineOptions, "max_rejects", "inconsistent clips in a row that restart the "
             "window", range=(1, 1000)),
-    _option("online_gravity_tol", OnlineOptions, "gravity_tol_deg", "deg; the odom gravity prior is dropped for a "
-            "clip when it is farther than this from the window's estimate", range=(0.01, 180.0)),
-    _option("online_velocity_tol", OnlineOptions, "velocity_tol_mps", "m/s; the odom velocity prior is dropped "
-            "for a clip when it is farther than this from the window's estimate", range=(0.001, 100.0)),
-    _option("online_gravity_weight", OnlineOptions, "gravity_weight_s2", "weight (m per m/s^2) of an accepted "
-            "gravity prior", range=(0.0, 1000.0)),
-    _option("online_velocity_weight", OnlineOptions, "v1_weight_s", "weight (m per m/s) of an accepted velocity "
-            "prior", range=(0.0, 1000.0)),
-    _option("online_max_scale_sigma", OnlineOptions, "max_scale_rel_sigma", "a clip whose scale has a larger "
-            "relative 1-sigma over the window is reported unobservable", range=(0.0001, 10.0)),
-    _option("online_bg_window", OnlineOptions, "bg_window_s", "s; the gyro bias is the median of the clips' own "
-            "estimates over this long", range=(0.1, 3600.0)),
-    _option("online_imu_keep", OnlineOptions, "imu_keep_s", "s of IMU kept for the window and the bridges "
-            "(> online_window + online_max_gap)", range=(1.0, 3600.0)),
+    _option("online_bg_window", OnlineOptions, "bg_window_s", "s; the gyro-bias prior is the median of the clips' "
+            "own estimates over this long", range=(0.1, 3600.0)),
     # clip buffer
     _option("clip_length", ClipBufferOptions, "n", "frames per clip (n)", range=(2, 64)),
     _option("stride", ClipBufferOptions, "stride", "use every stride-th input frame", range=(1, 100)),
@@ -159,6 +144,27 @@ PARAMS: tuple[Param, ...] = (
     Param("mode", "init", "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
           "(test-time refinement)", choices=MODES),
     _option("ttr_steps", AnchorOptions, "steps", "TTR optimisation steps", range=(1, 100000)),
+    _option("scale_solver", InitOptions, "scale_solver", "eiv: backbone positions regressed on the IMU with an error "
+            "model, a scale sigma per clip; tls / ols: the paper's Eq. S (no error model; independent clips only)",
+            choices=SCALE_SOLVERS),
+    _option("max_scale_sigma", InitOptions, "max_scale_rel_sigma", "a scale whose relative 1-sigma exceeds this is "
+            "not claimed (unobservable)", range=(0.001, 10.0)),
+    _option("max_rotation_error", InitOptions, "max_rotation_deg", "deg; a clip whose backbone relative rotations "
+            "disagree with the bias-corrected gyro by more is a backbone failure (rejected)", range=(0.01, 180.0)),
+    _option("accel_noise_density", InitOptions, "accel_noise_density", "m/s^2/sqrt(Hz); accelerometer noise of the "
+            "error model (EuRoC's datasheet x 10)", range=(0.0, 10.0)),
+    _option("gyro_noise_density", InitOptions, "gyro_noise_density", "rad/s/sqrt(Hz); gyro noise of the error model "
+            "(EuRoC's datasheet x 5)", range=(0.0, 10.0)),
+    _option("gyro_scale_error", InitOptions, "gyro_scale_error", "relative error of the integrated rotation in the "
+            "error model", range=(0.0, 1.0)),
+    _option("accel_bias_sigma", InitOptions, "accel_bias_sigma", "m/s^2; prior 1-sigma of the accelerometer bias",
+            range=(1e-6, 10.0)),
+    _option("accel_bias_walk", InitOptions, "accel_bias_walk", "m/s^2/sqrt(s); accelerometer bias random walk",
+            range=(0.0, 10.0)),
+    _option("gyro_bias_walk", InitOptions, "gyro_bias_walk", "rad/s/sqrt(s); gyro bias random walk",
+            range=(0.0, 10.0)),
+    _option("scale_rel_floor", InitOptions, "scale_rel_floor", "relative scale error the error model does not see "
+            "(added to every sigma)", range=(0.0, 1.0)),
     _option("min_accel_rms", InitOptions, "min_accel_rms", "m/s^2; below it scale is unobservable and the clip is "
             "flagged", range=(0.0, 100.0)),
     _option("max_imu_gap", InitOptions, "max_imu_gap_s", "s; a larger gap between IMU samples inside a clip rejects "

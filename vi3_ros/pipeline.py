@@ -86,11 +86,21 @@ class OutputSink(Protocol):
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None: ...
 
 
+#: Hz; the fastest IMU the buffer is sized for when it must keep seconds of history.
+MAX_IMU_RATE_HZ = 400.0
+
+
 def buffer_options(values: dict[str, Any]) -> ClipBufferOptions:
     """ClipBufferOptions from parameter values (see vi3_ros.params). With ``online``, the IMU history covers the
-    bridge from the previous clip (up to ``online_max_gap``)."""
+    bridge from the previous clip (up to ``online_max_bridge``), and the bounded IMU buffer holds that history (at up
+    to MAX_IMU_RATE_HZ) plus a clip."""
     opts = options(ClipBufferOptions, values)
-    return dataclasses.replace(opts, history=max(opts.history, values["online_max_gap"])) if values["online"] else opts
+    if not values["online"]:
+        return opts
+    history = max(opts.history, values["online_max_bridge"])
+    span = history + (opts.n - 1) * opts.stride * 0.2 + opts.imu_timeout + 1.0  # a clip at 5 Hz or faster
+    return dataclasses.replace(opts, history=history,
+                               imu_capacity=max(opts.imu_capacity, int(span * MAX_IMU_RATE_HZ)))
 
 
 def calib_from_camera_info(K: np.ndarray, dist_model: str, dist: np.ndarray, size: tuple[int, int],

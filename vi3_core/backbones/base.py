@@ -96,6 +96,7 @@ class Backbone(abc.ABC):
 
     name: str = "abstract"
     metric: bool = False
+    needs_images: bool = True  # False only for the evaluation's ground-truth instrument
     capabilities: frozenset[str] = frozenset()
     patch_size: int = 14
     #: AdamW learning rate TTR uses for this backbone's trainable groups unless AnchorOptions.lr is set.

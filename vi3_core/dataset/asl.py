@@ -202,16 +202,38 @@ def read_groundtruth(mav0: Path) -> GroundTruthTrack | None:
     return GroundTruthTrack(ns * 1e-9, T, v_WB=vals[:, 7:10], bg=vals[:, 10:13], ba=vals[:, 13:16], t_ns=ns)
 
 
+def camera_stamps_without_images(imu_ns: np.ndarray, gt: GroundTruthTrack | None, rate_hz: float) -> np.ndarray:
+    """Camera stamps [N] int64 ns for a folder that has IMU and ground truth but no images: every k-th IMU stamp at
+    ``rate_hz`` (as EuRoC's camera is triggered on the IMU clock), within the span both cover (a sample of margin
+    each side)."""
+    if gt is None or len(imu_ns) < 3:
+        raise DataError("a folder without camera images needs IMU and ground truth to place camera stamps")
+    t0, t1 = max(int(imu_ns[1]), int(gt.t_ns[0])), min(int(imu_ns[-2]), int(gt.t_ns[-1]))
+    inside = imu_ns[(imu_ns >= t0) & (imu_ns <= t1)]
+    step = max(int(round(1e9 / rate_hz / float(np.median(np.diff(imu_ns))))), 1)
+    if len(inside) < 2 * step:
+        raise DataError(f"IMU and ground truth overlap for {(t1 - t0) * 1e-9:.3f} s: too short for camera frames")
+    return inside[::step]
+
+
 def read_asl(path, *, camera: str = "cam0") -> Sequence:
-    """Open an ASL folder (``mav0`` or its parent) as a Sequence; images and depth load lazily."""
+    """Open an ASL folder (``mav0`` or its parent) as a Sequence; images and depth load lazily.
+
+    A folder whose camera has a ``sensor.yaml`` but no ``data.csv`` (IMU and ground truth only, e.g. the EuRoC IMU
+    test data) opens with camera stamps on the IMU clock (``camera_stamps_without_images``) and no images: it can be
+    evaluated with the ground-truth pose instrument (``--backbone gt``) only."""
     mav0 = find_mav0(path)
     cam_dir = mav0 / camera
     calib = load_calib(cam_dir / "sensor.yaml")
-    ns, cells = read_csv(cam_dir / "data.csv", columns=2)
-    files = [cam_dir / "data" / f for f in cells[:, 0]]
-    order = np.argsort(ns, kind="stable")
-    ns, files = ns[order], [files[i] for i in order]
     imu_ns, imu = read_imu(mav0)
+    gt = read_groundtruth(mav0)
+    if (cam_dir / "data.csv").is_file():
+        ns, cells = read_csv(cam_dir / "data.csv", columns=2)
+        files = [cam_dir / "data" / f for f in cells[:, 0]]
+        order = np.argsort(ns, kind="stable")
+        ns, files = ns[order], [files[i] for i in order]
+    else:
+        ns, files = camera_stamps_without_images(imu_ns, gt, calib.rate_hz or 20.0), None
     load_depth, raw_grid, depth_gt = None, False, "none"
     if (mav0 / "depth0").is_dir():
         try:
@@ -223,12 +245,15 @@ def read_asl(path, *, camera: str = "cam0") -> Sequence:
                 return None if depth_files[i] is None else read_depth_file(depth_files[i], scale)
 
     def load_image(i: int) -> np.ndarray:
+        if files is None:
+            raise DataError(f"{cam_dir}: no data.csv, so no images (an IMU and ground-truth folder: evaluate it with "
+                            "--backbone gt)")
         img = _read_png(files[i], cv2.IMREAD_UNCHANGED)
         return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
 
-    return Sequence(name=sequence_name(mav0), stamps=ns * 1e-9, imu=imu, calib=calib, gt=read_groundtruth(mav0),
-                    load_image=load_image, load_depth=load_depth, stamps_ns=ns, imu_ns=imu_ns,
-                    depth_on_raw_grid=raw_grid, depth_gt=depth_gt)
+    return Sequence(name=sequence_name(mav0), stamps=ns * 1e-9, imu=imu, calib=calib, gt=gt, load_image=load_image,
+                    load_depth=load_depth, stamps_ns=ns, imu_ns=imu_ns, depth_on_raw_grid=raw_grid,
+                    depth_gt=depth_gt, has_images=files is not None)
 
 
 def sequence_name(mav0: Path) -> str:

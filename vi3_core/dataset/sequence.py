@@ -80,6 +80,7 @@ class Sequence:
     None for a frame without depth): on the undistorted image's grid, or on the raw (distorted) image's grid when
     ``depth_on_raw_grid``. depth_gt: what ground-truth depth the source has, for reports: "none", a description of
     the format read, or "unreadable: <why>" when a depth folder exists but cannot be used.
+    has_images: False for a recording of IMU and ground truth only (its stamps are placed on the IMU clock).
     """
 
     name: str
@@ -93,6 +94,7 @@ class Sequence:
     imu_ns: np.ndarray | None = None
     depth_on_raw_grid: bool = False
     depth_gt: str = "none"
+    has_images: bool = True
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -114,10 +116,12 @@ class Sequence:
         return self.calib.undistorter().apply(depth, interpolation=cv2.INTER_NEAREST, border_value=np.nan)
 
 
-def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0) -> Clip:
-    """The clip of frames ``indices`` [n]: undistorted images, ``calib.undistorter().K``, ``T_BC``, the IMU window
-    with >= 1 sample beyond each end, ``imu_history`` (the ``history_s`` seconds before the clip, plus the clip),
-    and ground truth at the stamps when the track covers them (depth maps included when ``with_depth``)."""
+def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0,
+              with_images: bool = True) -> Clip:
+    """The clip of frames ``indices`` [n]: undistorted images (an empty [n,0,0] array without ``with_images``),
+    ``calib.undistorter().K``, ``T_BC``, the IMU window with >= 1 sample beyond each end, ``imu_history`` (the
+    ``history_s`` seconds before the clip, plus the clip), and ground truth at the stamps when the track covers them
+    (depth maps included when ``with_depth``)."""
     if seq.calib is None:
         raise DataError(f"sequence {seq.name!r} has no camera calibration; cannot undistort its images")
     idx = np.asarray(indices, dtype=np.int64)
@@ -125,7 +129,7 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
         raise DataError(f"clip indices {idx.tolist()} out of range for {len(seq)} frames of {seq.name!r}")
     stamps = seq.stamps[idx]
     und = seq.calib.undistorter()
-    images = np.stack([und.apply(seq.image(i)) for i in idx])
+    images = np.stack([und.apply(seq.image(i)) for i in idx]) if with_images else np.zeros((len(idx), 0, 0), np.uint8)
     imu = seq.imu.window(stamps[0], stamps[-1], margin=1)
     if len(imu) == 0 or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
         raise DataError(f"IMU of {seq.name!r} does not cover the clip [{stamps[0]:.6f}, {stamps[-1]:.6f}] s")

@@ -35,10 +35,11 @@ CLIP_SAMPLING = ("paper", "sliding")
 
 #: The supplementary tables' initialisation ablations, as ``InitOptions`` overrides of the paper's defaults.
 ABLATIONS: dict[str, dict] = {
-    "paper (TLS, all-pairs, consensus)": {},
+    "error-model fit (default)": {},
+    "paper Eq. S (TLS, all-pairs, consensus)": {"scale_solver": "tls"},
     "OLS scale": {"scale_solver": "ols"},
-    "first-pair v1": {"v1_method": "first_pair"},
-    "no gravity consensus": {"use_consensus": False},
+    "first-pair v1": {"scale_solver": "tls", "v1_method": "first_pair"},
+    "no gravity consensus": {"scale_solver": "tls", "use_consensus": False},
 }
 
 
@@ -84,6 +85,8 @@ def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indic
                         "truth (the GT track does not cover it); evaluation needs GT poses and velocities")
     if options.init_source == "gt":
         init = lambda base: oracle_init(clip, base)  # scales anchor's own base prediction: one forward pass
+    if hasattr(backbone, "bind"):  # the ground-truth pose instrument predicts from the clip's ground truth
+        backbone.bind(clip)
     fast: list[AnchorResult] = []
     result = anchor(clip, backbone, mode=options.mode, options=options.anchor_options,
                     init_options=options.init_options, init=init,
@@ -150,7 +153,8 @@ def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions
     for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
                     disable=not options.progress):
         try:
-            out.append(evaluate_clip(make_clip(seq, idx), backbone, options=options, indices=idx))
+            out.append(evaluate_clip(make_clip(seq, idx, with_images=backbone.needs_images), backbone, options=options,
+                                     indices=idx))
         except (Vi3Error, ValueError, OSError) as err:
             raise _stopped(seq, idx, err, out) from err
     return out
@@ -222,7 +226,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
         try:
             # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
-            clip = make_clip(seq, idx, history_s=max(2.0, est.options.max_gap_s))
+            clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=backbone.needs_images)
             ev = evaluate_clip(clip, backbone, options=options, indices=idx,
                                init=lambda base, clip=clip: est.initialise(clip, base))
             est.update(clip, ev.result)
@@ -253,7 +257,7 @@ def _finish(seq: Sequence, est: OnlineEstimator, run: OnlineRun, evals: list[Cli
     run.independent_scale_err = np.where(ok, np.abs(base * scale - 1.0), np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         run.independent_rel_sigma = np.array([sg for _, _, sg in free], dtype=np.float64) / scale
-    run.reason = contiguity_gap(seq, clips, est.options.max_gap_s)
+    run.reason = contiguity_gap(seq, clips, est.options.max_bridge_s)
     if not run.reason and len(traj.stamps) < 2:
         run.reason = (f"no trajectory: {len(traj.stamps)} chained poses ({sum(e.ok for e in evals)} of "
                       f"{len(evals)} clips ok)")

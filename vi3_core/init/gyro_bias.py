@@ -1,10 +1,14 @@
-"""Gyroscope bias from the backbone's relative rotations (paper Eq. bg), and an all-pairs refinement.
+"""Gyroscope bias from the backbone's relative rotations (paper Eq. bg), an all-pairs refinement, and the check
+that the two agree.
 
-Assumes the bias is constant over the clip and the backbone's rotations are unbiased; fails (returns a
-poor estimate, it cannot detect it) when the backbone's rotations are wrong by more than the gyro drift.
+Assumes the bias is constant over the clip and the backbone's rotations are unbiased. A backbone whose rotations
+are wrong by more than the gyro drift leaves residuals of that size after the fit (``rotation_check``): a clip
+whose relative rotations disagree with the bias-corrected gyro by degrees is a backbone failure.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,13 +44,47 @@ def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg:
     pair residuals: delta = -sum dT_ij r_ij / sum dT_ij^2 (the same dT^2 weighting as Eq. gls). The fixed
     point is exact whatever the Jacobian's error; the iteration converges while that error is < 100 %.
     """
-    n = len(stamps)
-    i, j = np.triu_indices(n, k=1)
-    dT = (stamps[j] - stamps[i])[:, None]
-    dR_vis = np.swapaxes(R_vis[i], 1, 2) @ R_vis[j]
     grid = grid or merged_grid(imu, stamps)
     for _ in range(iters):
-        R = integrate_rotations(grid, bg)[grid.frame_idx]
-        r = so3.log(np.swapaxes(np.swapaxes(R[i], 1, 2) @ R[j], 1, 2) @ dR_vis)
-        bg = bg - (dT * r).sum(0) / (dT**2).sum()
+        check = rotation_check(imu, stamps, R_vis, bg, grid=grid)
+        bg = bg - (check.dT[:, None] * check.residual).sum(0) / (check.dT**2).sum()
     return bg
+
+
+@dataclass(frozen=True)
+class RotationCheck:
+    """How the backbone's relative rotations agree with the gyro integrated with a bias estimate, over all frame pairs
+    i < j: residual [P,3] rad (Log(dR_imu_ij^T dR_vis_ij)), i, j [P] frame indices, dT [P] s."""
+
+    residual: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    dT: np.ndarray
+
+    def worst(self) -> tuple[float, int, int]:
+        """(largest residual angle in degrees, i, j) of the pair that disagrees most."""
+        ang = np.linalg.norm(self.residual, axis=1)
+        k = int(np.argmax(ang))
+        return float(np.degrees(ang[k])), int(self.i[k]), int(self.j[k])
+
+    def bias_sigma(self, n: int) -> float:
+        """1-sigma (rad/s, per axis) of the all-pairs bias estimate from the per-frame rotation noise that the residuals
+        show: with r_ij = e_j - e_i, the estimate -sum dT_ij r_ij / sum dT_ij^2 weighs frame m's error e_m by c_m =
+        sum_(pairs ending at m) dT - sum_(pairs starting at m) dT; sigma_e^2 = mean |r_ij|^2 / 6 (two frames, three
+        axes)."""
+        c = np.bincount(self.j, self.dT, minlength=n) - np.bincount(self.i, self.dT, minlength=n)
+        sigma_e = np.sqrt(float((self.residual**2).sum(1).mean()) / 6.0)
+        return float(sigma_e * np.sqrt((c**2).sum()) / (self.dT**2).sum())
+
+
+def rotation_check(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg: np.ndarray, *,
+                   grid: Grid | None = None) -> RotationCheck:
+    """Residuals of the backbone's body rotations R_vis [n,3,3] against the gyro integrated with ``bg`` [3] rad/s over
+    every frame pair (the quantity ``refine_gyro_bias`` minimises)."""
+    n = len(stamps)
+    i, j = np.triu_indices(n, k=1)
+    grid = grid or merged_grid(imu, stamps)
+    R = integrate_rotations(grid, bg)[grid.frame_idx]
+    dR_vis = np.swapaxes(R_vis[i], 1, 2) @ R_vis[j]
+    r = so3.log(np.swapaxes(np.swapaxes(R[i], 1, 2) @ R[j], 1, 2) @ dR_vis)
+    return RotationCheck(residual=r, i=i, j=j, dT=stamps[j] - stamps[i])

@@ -15,11 +15,13 @@ import numpy as np
 
 from vi3_core import so3
 from vi3_core.init import gravity_seeds, validate
-from vi3_core.init.gyro_bias import body_rotations, gyro_bias_eq, refine_gyro_bias
+from vi3_core.init.gyro_bias import body_rotations, gyro_bias_eq, refine_gyro_bias, rotation_check
+from vi3_core.init.metric_fit import FitClip, MetricFit
 from vi3_core.init.options import InitOptions
 from vi3_core.init.position_fit import body_position_terms
 from vi3_core.init.velocity_gravity import ScaleGravitySystem
 from vi3_core.preintegration import interval_gyro_mean, merged_grid, preintegrate
+from vi3_core.threads import single_blas_thread
 from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus
 
 
@@ -81,7 +83,12 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
     by name ("orientation", "geocalib", "long_window"; see ``gravity_seeds``); imu_history: seconds of IMU
     around the clip for the long-window seed. Bad data yields status ``rejected`` with the reason, never raises.
     """
-    options = options or InitOptions()
+    with single_blas_thread():
+        return _initialise(geometry, imu, stamps, T_BC, options or InitOptions(), seeds, imu_history)
+
+
+def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np.ndarray, options: InitOptions,
+                seeds: dict[str, np.ndarray] | None, imu_history: ImuSamples | None) -> InitResult:
     stamps = np.asarray(stamps, dtype=np.float64)
     reason = (validate.check_stamps(stamps) or validate.check_geometry(geometry, len(stamps))
               or validate.check_imu(imu, stamps, options))
@@ -89,14 +96,20 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
         return InitResult(InitStatus.REJECTED, reason)
     G = options.gravity_norm
     dt_imu = float(np.median(np.diff(imu.t)))
+    eiv = options.scale_solver == "eiv"
 
-    # Gyro bias: Eq. bg, then the all-pairs refinement.
+    # Gyro bias: Eq. bg, then the all-pairs refinement; then the backbone's rotations must agree with it.
     R_vis = body_rotations(geometry.T_wc[:, :3, :3], T_BC)
     grid = merged_grid(imu, stamps)
     bg = gyro_bias_eq(R_vis, interval_gyro_mean(grid), np.diff(stamps), dt_imu)
     bg_eq = bg.copy()
     bg = refine_gyro_bias(imu, stamps, R_vis, bg, options.bg_refine_iters, grid=grid)
-    pre = preintegrate(imu, stamps, bg, grid=grid)
+    check = rotation_check(imu, stamps, R_vis, bg, grid=grid)
+    worst, i, j = check.worst()
+    if worst > options.max_rotation_deg:
+        return InitResult(InitStatus.REJECTED, rotation_failure(worst, i, j, options.max_rotation_deg), bg=bg,
+                          diagnostics={"rotation_residual_deg": worst})
+    pre = preintegrate(imu, stamps, bg, grid=grid, jacobians=eiv)
 
     a, b = body_position_terms(geometry.T_wc, pre.R, T_BC)
     system = ScaleGravitySystem(a, b, pre, gravity_norm=G)
@@ -110,16 +123,35 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
         all_seeds.setdefault("long_window", history)
     g_imu = gravity_seeds.imu_seed(pre, G)
     g, source, consensus, diag = select_gravity(system, g_imu, all_seeds, options)
-    s = system.scale(g, options.scale_solver)
-    alignment = system.alignment(g)
     # Excitation is measured against the accelerometer's own gravity: what remains is the acceleration that
     # varies over the clip, the only part a gravity tilt cannot absorb (and it does not depend on s).
     accel_rms = system.accel_rms(g_imu)
     parallax = _parallax(geometry)
-    diag.update(bg_eq=bg_eq, s_tls=system.scale(g, "tls"), s_ols=system.scale(g, "ols"), alignment=alignment,
-                accel_rms=accel_rms, parallax=parallax, seeds=sorted(all_seeds))
+    diag.update(bg_eq=bg_eq, s_tls=system.scale(g, "tls"), s_ols=system.scale(g, "ols"), accel_rms=accel_rms,
+                parallax=parallax, seeds=sorted(all_seeds), rotation_residual_deg=worst, g_seed=g)
     result = InitResult(InitStatus.OK, "ok", bg=bg, g=g, gravity_source=source, consensus_deg=consensus,
                         iterations=int(diag["fp_imu_iterations"]), diagnostics=diag)
+
+    if eiv:
+        fit = MetricFit([FitClip(stamps, geometry.T_wc)], pre, T_BC, noise=options.noise_model, gravity_norm=G,
+                        bg_sigma=check.bias_sigma(len(stamps)))
+        fit = fit.solve(fit.initial_state(g))
+        st = fit.state
+        s, rel = float(fit.scale[0]), float(fit.scale_rel_sigma[0])
+        sigma_v_m = float(fit.sigma_v[0] / st.lam[0]) if st.lam[0] > 0 else float("nan")
+        g_sigma, v1_sigma = fit.state_sigma(0)
+        diag.update(scale_rel_sigma=rel, sigma_v_m=sigma_v_m, sigma_v_model=float(fit.sigma_v[0]),
+                    fit_dof=float(fit.dof[0]), fit_converged=fit.converged, variance_factor=fit.variance_factor,
+                    fit_lam=float(st.lam[0]), fit_v1=st.v[0], v1_sigma=v1_sigma, g_sigma_deg=math.degrees(g_sigma))
+        result.g, result.bg, result.ba = st.g, st.bg, st.ba
+        disagree = not s > 0.0
+        weak = not rel <= options.max_scale_rel_sigma
+    else:
+        s, rel = system.scale(g, options.scale_solver), float("nan")
+        alignment = system.alignment(g)
+        diag["alignment"] = alignment
+        disagree = not s > 0.0 or alignment < options.min_alignment
+        weak = False
 
     why = None
     if system.visual_signal == 0.0:
@@ -129,18 +161,31 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
                "(hover, constant velocity, pure rotation or no motion)")
     elif parallax < options.min_parallax:
         why = f"scale unobservable: visual baseline/depth {parallax:.4f} < {options.min_parallax} (no parallax)"
-    elif not s > 0.0 or alignment < options.min_alignment:
-        why = (f"scale unobservable: visual and inertial velocity increments disagree (cos {alignment:.2f} < "
-               f"{options.min_alignment}); the paper's fallback s = 1 is not claimed")
+    elif disagree:
+        why = ("scale unobservable: visual and inertial motion disagree "
+               + (f"(cos {diag['alignment']:.2f} < {options.min_alignment}); " if not eiv else
+                  "(the fitted scale is not positive); ") + "the paper's fallback s = 1 is not claimed")
+    elif weak:
+        why = (f"scale unobservable: relative sigma {rel:.3g} > {options.max_scale_rel_sigma} (visual noise "
+               f"{1e3 * diag['sigma_v_m']:.1f} mm per axis, body acceleration RMS {accel_rms:.2f} m/s^2)")
     if why:
         result.status, result.reason = InitStatus.UNOBSERVABLE, why
         return result
 
-    v1, how = system.initial_velocity(s, g, options.v1_method)
-    result.scale, result.v1 = float(s), v1
-    result.diagnostics["v1_method"] = how
-    result.target = pre.propagate(g, v1, T_BC)
+    result.scale, result.scale_sigma = float(s), float(rel * s)
+    if eiv:
+        result.v1 = st.v[0]
+        result.target = pre.corrected(st.bg, st.ba).propagate(st.g, st.v[0], T_BC)
+    else:
+        result.v1, result.diagnostics["v1_method"] = system.initial_velocity(s, g, options.v1_method)
+        result.target = pre.propagate(g, result.v1, T_BC)
     return result
+
+
+def rotation_failure(worst_deg: float, i: int, j: int, limit_deg: float) -> str:
+    """The reason of a clip whose backbone rotations disagree with the bias-corrected gyro."""
+    return (f"backbone failure: its relative rotation between frames {i} and {j} disagrees with the bias-corrected "
+            f"gyro by {worst_deg:.2f} deg (limit {limit_deg} deg)")
 
 
 def initialise_clip(clip, geometry: Geometry, *, options: InitOptions | None = None,
@@ -150,4 +195,4 @@ def initialise_clip(clip, geometry: Geometry, *, options: InitOptions | None = N
                       imu_history=clip.imu_history)
 
 
-__all__ = ["initialise", "initialise_clip", "select_gravity"]
+__all__ = ["initialise", "initialise_clip", "rotation_failure", "select_gravity"]

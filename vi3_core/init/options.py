@@ -5,7 +5,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from vi3_core.init.metric_fit import ImuNoiseModel
+
 GRAVITY_NORM = 9.81
+SCALE_SOLVERS = ("eiv", "tls", "ols")
 
 
 @dataclass(frozen=True)
@@ -13,8 +16,11 @@ class InitOptions:
     """Options of ``vi3_core.init.initialise``. Defaults follow the paper unless marked "beyond the paper".
 
     Scale and initial velocity
-        scale_solver: "tls" (Eq. S, the paper) or "ols" (ablation: regression-diluted).
-        v1_method: "all_pairs" (Eq. v0, median back-projection, the paper) or "first_pair" (ablation).
+        scale_solver: "eiv" (default, beyond the paper: the backbone positions regressed on the IMU kinematics with
+            an error model, ``metric_fit``; s, g, v1, ba and bg are refined jointly from the paper's solution and the
+            scale gets its standard deviation), "tls" (Eq. S and Eq. v0, the paper) or "ols" (ablation: regression-
+            diluted). The paper's solvers carry no error model: their scale_sigma is NaN.
+        v1_method: for "tls"/"ols": "all_pairs" (Eq. v0, median back-projection, the paper) or "first_pair".
     Gyroscope bias
         bg_refine_iters: Gauss-Newton refinements of Eq. bg's estimate over all frame pairs (beyond the paper:
             Eq. bg averages consecutive pairs, whose visual noise telescopes to the two end frames; the
@@ -27,17 +33,24 @@ class InitOptions:
             g = g_ls(s). The paper says 2-3 iterations; from the inertial seed the plain iteration contracts by
             only 0.65-0.999 per step on EuRoC-like motion, so it runs to the tolerance.
         fp_accelerate: Steffensen acceleration of that iteration (same fixed point; beyond the paper).
-    Observability (beyond the paper: the paper's Sec. Limitations, made explicit as a status)
+    Error model and observability (beyond the paper: the paper's Sec. Limitations, made explicit as a status)
+        accel_noise_density, gyro_noise_density, gyro_scale_error, accel_bias_sigma, gyro_bias_sigma,
+            scale_rel_floor, accel_bias_walk, gyro_bias_walk: the IMU error model of the "eiv" fit (``ImuNoiseModel``;
+            scale_rel_floor is its ``rel_floor``).
+        max_scale_rel_sigma: a scale whose relative 1-sigma exceeds this is not claimed (status unobservable). At 4 %
+            a claimed scale 10 % off is a 2.5-sigma event (about 1 % of the claims at the limit, fewer below it).
+        max_rotation_deg: a clip whose backbone relative rotations disagree with the bias-corrected gyro by more
+            than this (worst frame pair, degrees) is a backbone failure: status rejected, before any scale.
         min_accel_rms: m/s^2, RMS of the gravity-free body acceleration seen by the velocity increments;
             below it scale is unobservable (hover, constant velocity, pure rotation, stationary).
-        min_alignment: minimum cosine between visual and inertial velocity increments.
+        min_alignment: for "tls"/"ols": minimum cosine between visual and inertial velocity increments.
         min_parallax: minimum ratio of the visual baseline to the median scene depth (scale-free).
     Data validation (status "rejected")
         max_imu_gap_s: largest allowed gap between consecutive IMU samples inside the clip.
         min_samples_per_interval: IMU samples needed between consecutive frames.
     """
 
-    scale_solver: str = "tls"
+    scale_solver: str = "eiv"
     v1_method: str = "all_pairs"
     bg_refine_iters: int = 3
     use_consensus: bool = True
@@ -46,6 +59,16 @@ class InitOptions:
     fp_tol_deg: float = 1e-6
     fp_max_iters: int = 200
     fp_accelerate: bool = True
+    accel_noise_density: float = ImuNoiseModel.accel_noise_density
+    gyro_noise_density: float = ImuNoiseModel.gyro_noise_density
+    gyro_scale_error: float = ImuNoiseModel.gyro_scale_error
+    accel_bias_sigma: float = ImuNoiseModel.accel_bias_sigma
+    gyro_bias_sigma: float = ImuNoiseModel.gyro_bias_sigma
+    scale_rel_floor: float = ImuNoiseModel.rel_floor
+    accel_bias_walk: float = ImuNoiseModel.accel_bias_walk
+    gyro_bias_walk: float = ImuNoiseModel.gyro_bias_walk
+    max_scale_rel_sigma: float = 0.04
+    max_rotation_deg: float = 2.0
     min_accel_rms: float = 0.15
     min_alignment: float = 0.3
     min_parallax: float = 0.01
@@ -54,9 +77,20 @@ class InitOptions:
     gravity_norm: float = GRAVITY_NORM
 
     def __post_init__(self) -> None:
-        if self.scale_solver not in ("tls", "ols"):
-            raise ValueError(f"scale_solver must be 'tls' or 'ols', got {self.scale_solver!r}")
+        if self.scale_solver not in SCALE_SOLVERS:
+            raise ValueError(f"scale_solver must be one of {', '.join(SCALE_SOLVERS)}; got {self.scale_solver!r}")
         if self.v1_method not in ("all_pairs", "first_pair"):
             raise ValueError(f"v1_method must be 'all_pairs' or 'first_pair', got {self.v1_method!r}")
         if self.fp_max_iters < 1 or self.bg_refine_iters < 0:
             raise ValueError("fp_max_iters must be >= 1 and bg_refine_iters >= 0")
+        if not (self.max_scale_rel_sigma > 0 and self.max_rotation_deg > 0):
+            raise ValueError("max_scale_rel_sigma and max_rotation_deg must be > 0")
+        _ = self.noise_model  # validates the error model's values
+
+    @property
+    def noise_model(self) -> ImuNoiseModel:
+        """The IMU error model of the "eiv" fit."""
+        return ImuNoiseModel(accel_noise_density=self.accel_noise_density, gyro_noise_density=self.gyro_noise_density,
+                             gyro_scale_error=self.gyro_scale_error, accel_bias_sigma=self.accel_bias_sigma,
+                             gyro_bias_sigma=self.gyro_bias_sigma, rel_floor=self.scale_rel_floor,
+                             accel_bias_walk=self.accel_bias_walk, gyro_bias_walk=self.gyro_bias_walk)

@@ -21,8 +21,14 @@ def body_position_terms(T_wc: np.ndarray, R_B1B: np.ndarray, T_BC: np.ndarray) -
     """(a, b), each [n,3]: body position at frame i in B1 = s a_i + b_i for backbone camera poses T_wc [n,4,4]
     (first camera frame, up to scale s), body rotations R_B1B [n,3,3] and T_BC [4,4]. a_i = R_BC t_i (model units);
     b_i = t_BC - R_B1Bi t_BC, the lever arm in metres (never scaled)."""
+    return T_wc[:, :3, 3] @ T_BC[:3, :3].T, lever_arm_terms(R_B1B, T_BC)
+
+
+def lever_arm_terms(R_B1B: np.ndarray, T_BC: np.ndarray) -> np.ndarray:
+    """b [n,3] = t_BC - R_B1Bi t_BC, metres: where the camera's lever arm puts body positions relative to camera
+    positions for body rotations R_B1B [n,3,3] (never scaled)."""
     t_BC = T_BC[:3, 3]
-    return T_wc[:, :3, 3] @ T_BC[:3, :3].T, t_BC - R_B1B @ t_BC
+    return t_BC - R_B1B @ t_BC
 
 
 @dataclass(frozen=True)

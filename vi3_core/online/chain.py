@@ -38,8 +38,8 @@ class ChainedClip:
 class Trajectory:
     """The chained odom trajectory: every frame once, in time order (an overlapping clip adds only its new frames).
 
-    stamps: [N] s; T_OB: [N,4,4]; resets: first stamps of the clips at which the state was reset (the first clip
-    of the stream is not a reset)."""
+    stamps: [N] s; T_OB: [N,4,4]; resets: first stamps of the clips that start a new segment, placed without a
+    trustworthy IMU bridge from the previous chained clip (the first clip of the stream is not one)."""
 
     stamps: np.ndarray = field(default_factory=lambda: np.zeros(0))
     T_OB: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))

@@ -1,17 +1,20 @@
 """``OnlineEstimator``: metric state carried across the clips of a stream (beyond the paper, which treats every clip
 on its own), and the chaining of the clips into one continuous odom trajectory.
 
-Per clip: (1) the clip's own GT-free initialisation runs as always (its gyro bias and its data checks); (2) the clip
-joins a window of the clips of the last ``window_s`` seconds, fitted jointly (``window.WindowSystem``: gravity and
-accelerometer bias shared, one scale and first-frame velocity per clip, velocities tied through the IMU); a clip
-whose positions do not fit the window is rejected and named; (3) the odom state's gravity and velocity at the
-clip's first frame, propagated through the IMU bridge, are priors of that fit, each dropped (and named) when it
-disagrees with the window's own estimate; (4) the clip's scale, gravity and v1 come from the window. The gyro bias
-is the median of the own estimates of the clips of the last ``bg_window_s`` seconds. After a gap longer than
-``max_gap_s``, without IMU over the window, for a clip whose data is rejected, or after ``max_rejects``
-inconsistent clips in a row, the window restarts from the current clip, which takes the GT-free initialisation.
-Every clip is placed in odom at its IMU-propagated pose (the last pose without IMU), levelled with its adopted
-gravity, yaw kept.
+Per clip: (1) the clip's own GT-free initialisation runs as always (its data checks, its gyro bias, and its visual
+noise from its own fit); (2) its rotations are checked against the gyro with the stream's bias (a backbone failure
+is rejected before any scale); (3) the clip is fitted with the window (``window.Window``: the clips of the last
+``window_s`` seconds and the marginal prior of the ones before) and rejected, window unchanged, when its residual is
+inconsistent with the window (a chi-square test at ``consistency_p``); (4) its scale, gravity, velocity and biases
+come from that fit, and the scale is claimed only when its relative 1-sigma passes ``max_scale_rel_sigma``. Clips
+join the window whatever their own sigma: evidence accumulates, so gentle motion earns its scale over time. A gap
+in the IMU (or a bridge longer than ``max_bridge_s``), an out-of-order clip, or ``max_rejects`` inconsistent clips
+in a row restart the window (the accelerometer bias survives as a prior, the gyro-bias median and the odom attitude
+survive as they are); a restart clip is claimed only when its own sigma passes.
+
+Every claimed clip is placed in odom at its IMU-propagated pose (the last pose without IMU), levelled with its
+gravity, yaw kept; a placement whose bridge has no IMU or a position 1-sigma above ``max_bridge_sigma_m`` starts a new
+segment of the trajectory (``Trajectory.resets``).
 """
 
 from __future__ import annotations
@@ -20,50 +23,58 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import stats
 
 from vi3_core import so3
 from vi3_core.init import InitOptions, initialise_clip, validate
+from vi3_core.init.gyro_bias import body_rotations, rotation_check
+from vi3_core.init.initializer import rotation_failure
 from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
 from vi3_core.online.options import OnlineOptions
-from vi3_core.online.window import WindowClip, WindowSystem
+from vi3_core.online.window import Member, Window
 from vi3_core.preintegration import preintegrate
+from vi3_core.threads import single_blas_thread
 from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus
 
 
 @dataclass(frozen=True)
 class OdomState:
-    """The last chained clip: stamps [n] s, T_OB [n,4,4] body poses in odom, v_O [n,3] m/s, bg [3] rad/s gyro
-    bias."""
+    """The last chained clip: stamps [n] s, T_OB [n,4,4] body poses in odom, v_O [n,3] m/s, bg [3] rad/s and ba [3]
+    m/s^2 biases, v_sigma m/s and g_sigma rad: the largest 1-sigma of its first-frame velocity and gravity direction."""
 
     stamps: np.ndarray
     T_OB: np.ndarray
     v_O: np.ndarray
     bg: np.ndarray
+    ba: np.ndarray
+    v_sigma: float
+    g_sigma: float
 
 
 @dataclass(frozen=True)
 class Placement:
-    """Where the next clip's first body frame goes: R_OB1 [3,3], p_OB1 [3] m (re-levelled with the clip's adopted
-    gravity when it is chained)."""
+    """Where the next clip's first body frame goes: R_OB1 [3,3], p_OB1 [3] m (re-levelled with the clip's gravity
+    when it is chained), and why it starts a new segment ("" when the bridge from the last chained clip holds)."""
 
     R_OB1: np.ndarray
     p_OB1: np.ndarray
+    new_segment: str = ""
 
 
 @dataclass
 class OnlineDecision:
-    """What the estimator did with a clip: window size (clips fitted jointly, 0: none), priors used ("g", "v1"),
-    rejected {name: reason} ("clip": the clip itself against the window), reset reason ("" when none)."""
+    """What the estimator did with a clip: window size (clips fitted jointly, 0: none) and span (s), whether a marginal
+    prior from earlier clips was used, rejected {name: reason} ("clip": the clip itself), reset reason ("" if none)."""
 
     window: int = 0
-    used: tuple[str, ...] = ()
+    span_s: float = 0.0
+    prior: bool = False
     rejected: dict[str, str] = field(default_factory=dict)
     reset: str = ""
 
     def describe(self) -> str:
-        parts = [f"window {self.window} clips; priors: {','.join(self.used) or 'none'}"]
-        parts += [f"{name} {'prior ' if name != 'clip' else ''}rejected: {why}"
-                  for name, why in sorted(self.rejected.items())]
+        parts = [f"window {self.window} clips over {self.span_s:.1f} s; prior: {'yes' if self.prior else 'none'}"]
+        parts += [f"{name} rejected: {why}" for name, why in sorted(self.rejected.items())]
         if self.reset:
             parts.append(f"reset: {self.reset}")
         return "; ".join(parts)
@@ -86,21 +97,24 @@ class OnlineEstimator:
 
     Usage per clip: ``init = est.initialise(clip, geometry)`` (or as ``anchor(..., init=lambda g:
     est.initialise(clip, g))``), then ``est.update(clip, anchor_result)`` -> ChainedClip or None. Deterministic:
-    the same clips give the same output. ``state`` may be replaced between clips (tests inject a wrong prior)."""
+    the same clips give the same output. Needs the "eiv" scale solver (its error model)."""
 
     def __init__(self, *, options: OnlineOptions | None = None, init_options: InitOptions | None = None) -> None:
         self.options = options or OnlineOptions()
         self.init_options = init_options or InitOptions()
+        if self.init_options.scale_solver != "eiv":
+            raise ValueError("the online window needs scale_solver 'eiv' (its error model); the paper's solvers run "
+                             "on independent clips only")
+        self.window = Window(noise=self.init_options.noise_model, gravity_norm=self.init_options.gravity_norm,
+                             window_s=self.options.window_s, max_clips=self.options.max_clips)
         self.state: OdomState | None = None
         self.trajectory = Trajectory()
         self.last = OnlineDecision()
         self._imu: ImuSamples | None = None
-        self._window: list[WindowClip] = []
         self._bgs: list[tuple[float, np.ndarray]] = []  # (first stamp, own gyro-bias estimate) of recent clips
-        self._rms_ref = 0.0  # median per-clip position residual of the last accepted window fit, m
         self._rejects = 0
-        self._restarted = False
-        self._last_end: float | None = None  # last frame of the previous clip seen, s
+        self._window_claimed = False  # the window (since its last restart) has claimed a scale
+        self._last_start: float | None = None  # first frame of the previous clip seen, s
         self._pending: tuple[float, Placement] | None = None
 
     @property
@@ -120,156 +134,153 @@ class OnlineEstimator:
             return "no IMU"
         return validate.check_imu(self._imu.window(t0, t1), np.array([t0, t1]), self.init_options) or ""
 
-    def _bridge(self, t1: float) -> tuple[Placement, np.ndarray] | str:
-        """The odom state propagated to t1 from its frame nearest before t1: (placement, v_O at t1), or why it
-        cannot be."""
+    def _placement(self, t1: float) -> Placement:
+        """The odom state propagated to t1 through the IMU from its frame nearest before t1; without IMU (or state),
+        the last pose (or the origin), starting a new segment."""
         st = self.state
         if st is None:
-            return "no odom state"
+            return Placement(np.eye(3), np.zeros(3), "")
         k = int(np.searchsorted(st.stamps, t1 + 1e-9, side="right")) - 1
         if k < 0:
-            return f"clip starts at {t1:.3f} s, before the previous clip's first frame"
+            return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3],
+                             f"clip starts at {t1:.3f} s, before the previous clip's first frame")
         R_k, p_k, v_k = st.T_OB[k, :3, :3], st.T_OB[k, :3, 3], st.v_O[k]
-        gap = t1 - float(st.stamps[k])
-        if gap < 1e-9:
-            return Placement(R_k, p_k), v_k
-        why = self._imu_gap(float(st.stamps[k]), t1)
+        T = t1 - float(st.stamps[k])
+        if T < 1e-9:
+            return Placement(R_k, p_k)
+        why = (f"gap of {T:.2f} s > max_bridge_s {self.options.max_bridge_s} s" if T > self.options.max_bridge_s
+               else self._imu_gap(float(st.stamps[k]), t1))
         if why:
-            return f"no IMU over the {gap:.2f} s bridge: {why}"
+            return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3], f"no bridge over {T:.2f} s: {why}")
         stamps = np.array([st.stamps[k], t1])
-        pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, st.bg)
+        pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, st.bg, st.ba)
         bridge = pre.propagate(R_k.T @ self.g_O, R_k.T @ v_k)  # in B_k, then rotated into odom
-        return Placement(R_k @ bridge.R[1], p_k + R_k @ bridge.p[1]), R_k @ bridge.v[1]
+        noise = self.init_options.noise_model
+        G = self.init_options.gravity_norm
+        sigma = math.hypot(st.v_sigma * T, 0.5 * G * st.g_sigma * T**2,
+                           noise.accel_noise_density * T**1.5 / math.sqrt(3.0))
+        new = (f"bridge of {T:.2f} s has a position 1-sigma of {sigma:.2f} m > max_bridge_sigma_m "
+               f"{self.options.max_bridge_sigma_m}") if sigma > self.options.max_bridge_sigma_m else ""
+        return Placement(R_k @ bridge.R[1], p_k + R_k @ bridge.p[1], new)
 
-    def _place(self, bridged: tuple[Placement, np.ndarray] | str) -> Placement:
-        """The bridged placement, else the last pose (no IMU over the gap), else the odom origin."""
-        if not isinstance(bridged, str):
-            return bridged[0]
-        if self.state is None:
-            return Placement(np.eye(3), np.zeros(3))
-        return Placement(self.state.T_OB[-1, :3, :3], self.state.T_OB[-1, :3, 3])
-
-    def _filtered_bg(self, t1: float, bg: np.ndarray) -> np.ndarray:
-        """Median [3] rad/s of the own gyro-bias estimates of the clips of the last ``bg_window_s`` seconds (the
-        bias drifts slowly; the median ignores a clip whose visual rotations failed)."""
+    def _filtered_bg(self, t1: float, bg: np.ndarray) -> tuple[np.ndarray, float]:
+        """Median [3] rad/s of the own (rotation-based) gyro-bias estimates of the clips of the last ``bg_window_s``
+        seconds, and its 1-sigma (rad/s, largest axis, from their spread; the median ignores a clip whose rotations
+        failed)."""
         self._bgs = [(t, b) for t, b in self._bgs if t >= t1 - self.options.bg_window_s] + [(t1, np.asarray(bg))]
-        return np.median([b for _, b in self._bgs], axis=0)
+        bgs = np.array([b for _, b in self._bgs])
+        med = np.median(bgs, axis=0)
+        spread = 1.4826 * np.median(np.abs(bgs - med), axis=0).max() / math.sqrt(len(bgs)) if len(bgs) > 2 else 0.0
+        return med, float(spread)
 
     # ---- initialisation -------------------------------------------------------------------------------------
 
-    def _restart(self, free: InitResult, why: str, seed: WindowClip | None = None, bg: np.ndarray | None = None,
-                 T_BC: np.ndarray | None = None) -> InitResult:
-        """Restart the window from ``seed`` when the clip's own initialisation is ok (a clip whose own scale is
-        unobservable may have poses too poor to anchor the window), with its own position residual as the reference
-        of the consistency test; the clip keeps its GT-free result."""
-        self._window, self._rms_ref = [], 0.0
-        if seed is not None and free.ok and not self._imu_gap(float(seed.stamps[0]), float(seed.stamps[-1])):
-            self._window, self._rms_ref = [seed], float(self._system([seed], bg, T_BC).solve().rms[0])
-        self._rejects, self._restarted = 0, True
-        return self._decide(free, OnlineDecision(window=len(self._window), reset=why), free)
-
     def _decide(self, result: InitResult, decision: OnlineDecision, free: InitResult) -> InitResult:
         """Record the decision; the diagnostics keep the clip's own GT-free result beside it (``free_status``,
-        ``free_scale``: what the paper's per-clip pipeline would have output)."""
+        ``free_scale``, ``free_scale_sigma``: what the paper's per-clip pipeline with the error model would output)."""
         self.last = decision
-        result.diagnostics.update(online=decision.describe(), free_status=free.status.value, free_scale=free.scale)
+        result.diagnostics.update(online=decision.describe(), free_status=free.status.value, free_scale=free.scale,
+                                  free_scale_sigma=free.scale_sigma)
         return result
 
-    def _system(self, clips: list[WindowClip], bg: np.ndarray, T_BC: np.ndarray) -> WindowSystem:
-        imu = self._imu.window(float(clips[0].stamps[0]), float(clips[-1].stamps[-1]))
-        return WindowSystem(clips, imu, bg, T_BC, gravity_norm=self.init_options.gravity_norm,
-                            ba_weight=self.options.ba_weight, link_weight_s=self.options.velocity_link_s)
+    def _restart_reason(self, t1: float, t_end: float) -> str:
+        """Why the window cannot go on with a clip spanning [t1, t_end] ("" when it can)."""
+        if not len(self.window):
+            return ""
+        first, last = float(self.window.members[0].stamps[0]), float(self.window.members[-1].stamps[0])
+        if t1 <= last:
+            return f"clip out of order (starts at {t1:.3f} s, the previous clip at {last:.3f} s)"
+        gap = t1 - float(self.window.members[-1].stamps[-1])
+        if gap > self.options.max_bridge_s:
+            return f"gap of {gap:.2f} s > max_bridge_s {self.options.max_bridge_s} s"
+        why = self._imu_gap(first, t_end)
+        return f"IMU does not cover the window: {why}" if why else ""
 
     def initialise(self, clip: Clip, geometry: Geometry) -> InitResult:
-        """The clip's InitResult: from the window fit, or the GT-free one after a restart."""
-        o = self.options
+        """The clip's InitResult from the window fit (see the module docstring)."""
+        with single_blas_thread():
+            return self._initialise(clip, geometry)
+
+    def _initialise(self, clip: Clip, geometry: Geometry) -> InitResult:
+        o, io = self.options, self.init_options
         self._remember_imu(clip)
-        free = initialise_clip(clip, geometry, options=self.init_options)
-        t1 = float(clip.stamps[0])
-        gap = t1 - self._last_end if self._last_end is not None else 0.0
-        self._last_end = float(clip.stamps[-1])
-        bridged = self._bridge(t1)
-        self._pending = (t1, self._place(bridged))
-        if free.status is InitStatus.REJECTED:
-            return self._restart(free, f"clip rejected ({free.reason})")
-        bg = self._filtered_bg(t1, free.bg)
-        member = WindowClip(np.asarray(clip.stamps, dtype=np.float64), np.asarray(geometry.T_wc, np.float64))
-        window = [c for c in self._window if c.stamps[0] >= t1 - o.window_s]
-        if not window:
-            return self._restart(free, "no window yet" if not self._window else "window expired", member, bg,
-                                 clip.T_BC)
-        why = (f"gap of {gap:.2f} s > max_gap_s {o.max_gap_s} s" if gap > o.max_gap_s
-               else f"clip out of order (starts at {t1:.3f} s)" if t1 <= float(window[-1].stamps[0])
-               else self._imu_gap(float(window[0].stamps[0]), float(clip.stamps[-1])))
-        if why:
-            return self._restart(free, why, member, bg, clip.T_BC)
-
-        # With the new clip, every clip must still fit about as well as the window's clips did: a clip whose poses
-        # are wrong spreads its error over the whole window. (An outlier that got in anyway makes the next clips
-        # fail too, and max_rejects of those restart the window.)
-        clips = [*window, member]
-        system = self._system(clips, bg, clip.T_BC)
-        fit = system.solve()
-        limit = max(o.residual_ratio * self._rms_ref, o.residual_floor_m)
-        old = float(fit.rms[:-1].max())
-        if not (fit.rms[-1] <= limit and old <= limit):
+        free = initialise_clip(clip, geometry, options=io)
+        t1, t_end = float(clip.stamps[0]), float(clip.stamps[-1])
+        self._pending = (t1, self._placement(t1))
+        decision = OnlineDecision(window=len(self.window), prior=self.window.prior is not None)
+        if free.status is InitStatus.REJECTED:  # bad data or a backbone failure: the window goes on without it
+            return self._decide(free, replace(decision, rejected={"clip": free.reason}), free)
+        bg, bg_sigma = self._filtered_bg(t1, free.bg)
+        worst, i, j = rotation_check(clip.imu, clip.stamps, body_rotations(geometry.T_wc[:, :3, :3], clip.T_BC),
+                                     bg).worst()
+        if worst > io.max_rotation_deg:
+            why = rotation_failure(worst, i, j, io.max_rotation_deg) + " (the stream's gyro bias)"
+            return self._decide(InitResult(InitStatus.REJECTED, why, bg=bg, diagnostics=dict(free.diagnostics)),
+                                replace(decision, rejected={"clip": why}), free)
+        d = free.diagnostics
+        if not (d["fit_lam"] > 0 and np.isfinite(d["scale_rel_sigma"])):
+            # Poses that carry no scale (no translation, or motion opposite to the IMU's) would only add noise that
+            # the window cannot weigh: the clip stays out, the window goes on.
+            why = f"its own poses carry no scale ({free.reason})"
+            return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable: {why}", bg=bg,
+                                           diagnostics=dict(d)), replace(decision, rejected={"clip": why}), free)
+        member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
+                        sigma_v=float(d["sigma_v_model"]), lam=float(d["fit_lam"]), v=np.asarray(d["fit_v1"]),
+                        g=np.asarray(free.g))
+        reset = self._restart_reason(t1, t_end)
+        if reset:
+            gap = t1 - (self._last_start if self._last_start is not None else t1)
+            self.window.restart(ba_widen=io.accel_bias_walk**2 * max(gap, 0.0))
+            self._rejects, self._window_claimed = 0, False
+        self._last_start = t1
+        sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
+        k = len(sol.members) - 1
+        res = sol.result
+        chi2 = float(res.chi2[k] + (res.link_chi2[k - 1] if k else 0.0))
+        dof = float(res.dof[k] + (res.link_dof[k - 1] if k else 0.0))
+        p = float(stats.chi2.sf(chi2, dof)) if (k or sol.priors) else 1.0
+        if p < o.consistency_p:
             self._rejects += 1
-            if self._rejects >= o.max_rejects:
-                return self._restart(free, f"{self._rejects} clips in a row inconsistent with the window",
-                                     member, bg, clip.T_BC)
-            reason = (f"position residual {1e3 * fit.rms[-1]:.1f} mm, the window's up to {1e3 * old:.1f} mm (limit "
-                      f"{1e3 * limit:.1f} mm) in a window of {len(clips)} clips")
-            return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {reason}",
-                                           bg=bg, diagnostics=dict(free.diagnostics)),
-                                OnlineDecision(window=len(clips), rejected={"clip": reason}), free)
+            why = (f"normalised residual {chi2 / dof:.2f} over {dof:.1f} degrees of freedom (p = {p:.1e} < "
+                   f"{o.consistency_p:g}) in a window of {k + 1} clips")
+            # A window that has not claimed a scale yet has nothing to defend: the clip that disagrees with it
+            # starts a new one (after a hover or a stretch of bad data the new clip is as likely to be right).
+            if self._rejects < o.max_rejects and self._window_claimed:
+                return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {why}",
+                                               bg=bg, diagnostics=dict(d)),
+                                    replace(decision, rejected={"clip": why}), free)
+            reset = (f"{self._rejects} clips in a row inconsistent with the window" if self._window_claimed
+                     else f"inconsistent with a window that claimed no scale yet ({why})")
+            self.window.restart()
+            self._window_claimed = False
+            sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
+            k, res = 0, sol.result
         self._rejects = 0
-        rel = float(fit.scale_rel_sigma[-1])  # before the priors: they restate the previous window's data
-        # Only a clip whose scale the window pins down joins it: a poorly determined scale is as often a sign of
-        # wrong poses (which then bend g, v and ba for the clips after it) as of too little motion.
-        if fit.scales[-1] > 0.0 and rel <= o.max_scale_rel_sigma:
-            self._window, self._rms_ref = clips, float(np.median(fit.rms))
-
-        # Priors from the odom state, each tested against the window's own estimate at the clip's first frame.
-        k = len(clips) - 1
-        g_win, v_win = system.state_at(k, fit)
-        decision = OnlineDecision(window=len(clips))
-        if not isinstance(bridged, str):
-            place, v_O1 = bridged
-            g_prior, v_prior = place.R_OB1.T @ self.g_O, place.R_OB1.T @ v_O1
-            angle = math.degrees(float(so3.angle_between(g_prior, g_win)))
-            dv = float(np.linalg.norm(v_prior - v_win))
-            priors = []
-            if angle > o.gravity_tol_deg:
-                decision.rejected["g"] = f"{angle:.2f} deg from the window's gravity > {o.gravity_tol_deg} deg"
-            elif o.gravity_weight_s2 > 0.0:
-                priors.append(system.gravity_prior(k, g_prior, o.gravity_weight_s2))
-                decision.used += ("g",)
-            if dv > o.velocity_tol_mps:
-                decision.rejected["v1"] = f"{dv:.2f} m/s from the window's velocity > {o.velocity_tol_mps} m/s"
-            elif o.v1_weight_s > 0.0:
-                priors.append(system.velocity_prior(k, v_prior, o.v1_weight_s))
-                decision.used += ("v1",)
-            if priors:
-                fit = system.solve(tuple(priors))
-                g_win, v_win = system.state_at(k, fit)
-        s = float(fit.scales[-1])
-        diag = dict(free.diagnostics, free_g=free.g, window_clips=len(clips), window_rms=fit.rms, ba=fit.ba,
-                    scale_rel_sigma=rel)
-        if not (s > 0.0 and rel <= o.max_scale_rel_sigma):
-            return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable over the online window "
-                                           f"(s {s:.3g}, relative sigma {rel:.3g} > {o.max_scale_rel_sigma})",
-                                           bg=bg, g=g_win, diagnostics=diag), decision, free)
-        target = preintegrate(clip.imu, clip.stamps, bg, fit.ba).propagate(g_win, v_win, clip.T_BC)
-        return self._decide(InitResult(InitStatus.OK, f"ok (online window of {len(clips)} clips)", bg=bg, g=g_win,
-                                       scale=s, v1=v_win, gravity_source="online_window", target=target,
-                                       diagnostics=diag), decision, free)
+        self.window.commit(sol)
+        span = float(sol.members[-1].stamps[-1] - sol.members[0].stamps[0])
+        decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset)
+        g_k, v_k = sol.frame_state(k)
+        s, rel = float(res.scale[k]), float(res.scale_rel_sigma[k])
+        g_sigma, v_sigma = res.state_sigma(k)
+        diag = dict(d, window_clips=k + 1, scale_rel_sigma=rel, window_variance_factor=res.variance_factor,
+                    ba=res.state.ba, v1_sigma=v_sigma, g_sigma_deg=math.degrees(g_sigma))
+        st = res.state
+        if not (s > 0.0 and rel <= io.max_scale_rel_sigma):
+            why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > {io.max_scale_rel_sigma}; "
+                   f"{k + 1} clips over {span:.1f} s)")
+            return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, diagnostics=diag),
+                                decision, free)
+        target = preintegrate(clip.imu, clip.stamps, st.bg, st.ba).propagate(g_k, v_k, clip.T_BC)
+        self._window_claimed = True
+        return self._decide(InitResult(InitStatus.OK, f"ok (online window of {k + 1} clips)", bg=st.bg, g=g_k,
+                                       scale=s, scale_sigma=rel * s, ba=st.ba, v1=v_k, gravity_source="online_window",
+                                       target=target, diagnostics=diag), decision, free)
 
     # ---- chaining -------------------------------------------------------------------------------------------
 
     def update(self, clip: Clip, result: AnchorResult) -> ChainedClip | None:
-        """Place the anchored clip in odom (levelled with its adopted gravity, yaw kept) and make it the state for
-        the next clip's priors and bridge. A clip that is not ok, or that ``initialise`` did not see, is not
-        placed (the window and the state carry on)."""
+        """Place the anchored clip in odom (levelled with its gravity, yaw kept) and make it the state for the next
+        clip's bridge. A clip that is not ok, or that ``initialise`` did not see, is not placed."""
         init = result.init
         target = result.target or init.target
         pending, self._pending = self._pending, None
@@ -282,10 +293,13 @@ class OnlineEstimator:
         T_B1B = T_BC @ result.geometry.T_wc @ so3.inv_T(T_BC)  # metric body poses in B1
         T_OB = so3.make_T(R_OB1, place.p_OB1) @ T_B1B
         v_O = target.v @ R_OB1.T
-        if self._restarted and self.state is not None:
-            self.trajectory.resets.append(float(clip.stamps[0]))
-        self._restarted = False
-        self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg))
+        if place.new_segment and self.state is not None:  # the segment starts at the clip's first new frame
+            last = self.trajectory.stamps[-1] if len(self.trajectory.stamps) else -np.inf
+            self.trajectory.resets.append(float(clip.stamps[np.argmax(clip.stamps > last)]))
+        d = init.diagnostics
+        self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg),
+                               np.asarray(init.ba), float(d.get("v1_sigma", 0.0)),
+                               math.radians(float(d.get("g_sigma_deg", 0.0))))
         chained = ChainedClip(self.state.stamps, T_OB, v_O)
         self.trajectory.extend(chained)
         return chained

@@ -1,8 +1,9 @@
-"""3DFM-like up-to-scale poses from ground truth, for initialisation tests and benchmarks.
+"""3DFM-like up-to-scale poses from ground truth, for initialisation tests, benchmarks and the evaluation's ``gt``
+pose-noise instrument.
 
-The "visual" poses are the true camera poses (through T_BC), re-anchored at the first camera, with their
-translation multiplied by an unknown scale and perturbed by independent per-frame noise: a rotation of a fixed
-angle about a random axis, and a translation of a fixed fraction of the mean inter-frame baseline.
+The "visual" poses are the true camera poses (through T_BC) perturbed per frame (``PoseNoise``), re-anchored at the
+first camera as a 3DFM re-anchors every clip (so the first frame's error moves all the others), with their
+translation divided by an unknown scale.
 """
 
 from __future__ import annotations
@@ -16,6 +17,51 @@ from vi3_core.sim.euroc import CAMERA_RATE_HZ, IMU_RATE_HZ, T_BS_CAM0
 from vi3_core.sim.imu import EUROC_NOISE, ImuNoise, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
 from vi3_core.types import Geometry, ImuSamples
+
+
+@dataclass(frozen=True)
+class PoseNoise:
+    """Errors of a 3DFM's camera poses, in metric units before the scale is applied.
+
+    pos_m: m, i.i.d. per frame and axis; rot_deg: deg, per frame, about a random axis; drift_m: m, a random walk whose
+    per-axis 1-sigma reaches drift_m at the last frame (temporally correlated errors, which a clip's own residuals
+    under-report)."""
+
+    pos_m: float = 0.0
+    rot_deg: float = 0.0
+    drift_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not all(np.isfinite(v) and v >= 0 for v in (self.pos_m, self.rot_deg, self.drift_m)):
+            raise ValueError(f"PoseNoise: every value must be finite and >= 0, got {self}")
+
+    @staticmethod
+    def parse(text: str) -> PoseNoise:
+        """"POS_M,ROT_DEG[,DRIFT_M]" (the evaluation's ``--gt-noise``) -> PoseNoise; ValueError naming the text."""
+        try:
+            values = [float(x) for x in text.split(",")]
+            if not 2 <= len(values) <= 3:
+                raise ValueError
+            return PoseNoise(*values)
+        except ValueError:
+            raise ValueError(f"pose noise {text!r}: expected POS_M,ROT_DEG[,DRIFT_M], finite and >= 0 "
+                             "(e.g. 0.003,0.1)") from None
+
+
+def noisy_poses(T_wc: np.ndarray, *, scale: float, noise: PoseNoise, rng: np.random.Generator) -> np.ndarray:
+    """T_wc [n,4,4] metric camera poses in C1 -> up-to-scale poses with ``noise`` (model units = metres / scale),
+    re-anchored so that the first is the identity."""
+    n = len(T_wc)
+    axis = rng.standard_normal((n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    out = T_wc.copy()
+    out[:, :3, :3] = T_wc[:, :3, :3] @ so3.exp(axis * np.radians(noise.rot_deg))
+    out[:, :3, 3] += rng.standard_normal((n, 3)) * noise.pos_m
+    if noise.drift_m > 0 and n > 1:
+        out[:, :3, 3] += np.cumsum(rng.standard_normal((n, 3)), axis=0) * (noise.drift_m / np.sqrt(n))
+    out = so3.relative_to_first(out)
+    out[:, :3, 3] /= scale
+    return out
 
 
 @dataclass(frozen=True)
@@ -33,33 +79,14 @@ class InitCase:
     T_B1Bi: np.ndarray
 
 
-def noisy_poses(T_wc: np.ndarray, *, scale: float, rot_noise_deg: float, trans_noise_frac: float,
-                rng: np.random.Generator, min_noise_m: float = 1e-3) -> np.ndarray:
-    """T_wc [n,4,4] metric camera poses in C1 -> up-to-scale noisy poses (model units = metres / scale).
-
-    Translation noise is ``trans_noise_frac`` of the mean metric inter-frame baseline (at least
-    ``min_noise_m``), isotropic, applied before dividing by ``scale``; frame 0 stays the identity.
-    """
-    n = len(T_wc)
-    axis = rng.standard_normal((n, 3))
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    dR = so3.exp(axis * np.radians(rot_noise_deg))
-    baseline = np.linalg.norm(np.diff(T_wc[:, :3, 3], axis=0), axis=1).mean()
-    sigma = max(trans_noise_frac * baseline, min_noise_m if trans_noise_frac > 0 else 0.0) / np.sqrt(3)
-    out = T_wc.copy()
-    out[1:, :3, :3] = T_wc[1:, :3, :3] @ dR[1:]
-    out[1:, :3, 3] = T_wc[1:, :3, 3] + rng.standard_normal((n - 1, 3)) * sigma
-    out[:, :3, 3] /= scale
-    return out
-
-
 def make_init_case(seed: int, *, kind: str = "drone", n: int = 8, stride: int = 2, scale: float | None = None,
-                   rot_noise_deg: float = 0.0, trans_noise_frac: float = 0.0, imu_noise: ImuNoise = EUROC_NOISE,
-                   bg_sigma: float = 0.02, depth_m: float = 3.0, with_orientation: bool = False) -> InitCase:
+                   pose_noise: PoseNoise = PoseNoise(), imu_noise: ImuNoise = EUROC_NOISE, bg_sigma: float = 0.02,
+                   ba: float = 0.1, depth_m: float = 3.0, with_orientation: bool = False) -> InitCase:
     """A clip of n frames at ``stride`` x 20 Hz with 200 Hz IMU, EuRoC extrinsics and noise.
 
-    scale: drawn log-uniformly in [0.1, 10] when None; gyro bias drawn N(0, bg_sigma) per axis; the geometry's
-    depth is a constant ``depth_m`` metres (in model units) so that parallax checks see a real scene depth.
+    scale: drawn log-uniformly in [0.1, 10] when None; gyro bias drawn N(0, bg_sigma) per axis; accelerometer bias of
+    magnitude ``ba`` m/s^2 in a random direction (EuRoC's reach 0.05-0.2; none with a noise-free IMU); the
+    geometry's depth is a constant ``depth_m`` metres (in model units) so that parallax checks see a real scene depth.
     """
     rng = np.random.default_rng(seed)
     traj = make_trajectory(kind, seed=seed)
@@ -68,14 +95,15 @@ def make_init_case(seed: int, *, kind: str = "drone", n: int = 8, stride: int = 
     t0 = rng.uniform(5.0, 50.0)
     stamps = t0 + np.arange(n) * stride / CAMERA_RATE_HZ + rng.uniform(0.0, 1.0 / IMU_RATE_HZ)
     bg = rng.normal(0.0, bg_sigma, 3)
-    imu = simulate_imu(traj, imu_stamps(stamps[0] - 0.02, stamps[-1] + 0.02), noise=imu_noise, bg0=bg,
-                       ba0=rng.normal(0.0, 0.02, 3) if imu_noise.accel_noise_density > 0 else None,
+    ba0 = rng.standard_normal(3)
+    ba0 *= ba / np.linalg.norm(ba0) if imu_noise.accel_noise_density > 0 else 0.0
+    imu = simulate_imu(traj, imu_stamps(stamps[0] - 0.02, stamps[-1] + 0.02), noise=imu_noise, bg0=bg, ba0=ba0,
                        seed=seed + 1, with_orientation=with_orientation)
     T_WB = traj.T_WB(stamps)
     T_B1Bi = so3.inv_T(T_WB[0]) @ T_WB
     T_BC = T_BS_CAM0
     T_wc = so3.inv_T(T_BC) @ T_B1Bi @ T_BC
-    poses = noisy_poses(T_wc, scale=scale, rot_noise_deg=rot_noise_deg, trans_noise_frac=trans_noise_frac, rng=rng)
+    poses = noisy_poses(T_wc, scale=scale, noise=pose_noise, rng=rng)
     geometry = Geometry(T_wc=poses, K=np.tile(np.eye(3), (n, 1, 1)), depth=np.full((n, 4, 4), depth_m / scale),
                         conf=np.ones((n, 4, 4)), metric=False)
     R1 = T_WB[0, :3, :3]

@@ -32,7 +32,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "each reported, then pooled")
     p.add_argument("--calib", default=None, metavar="YAML",
                    help="camera calibration (EuRoC sensor.yaml or Kalibr camchain) for bags that carry none")
-    p.add_argument("--backbone", default="classical", help="3DFM backbone (default: the embedded 'classical')")
+    p.add_argument("--backbone", default="classical",
+                   help="3DFM backbone (default: the embedded 'classical'); 'gt' is the ground-truth pose instrument "
+                        "(see --gt-noise), an evaluation tool, never a backbone for the node")
+    p.add_argument("--gt-noise", default=None, metavar="POS_M,ROT_DEG[,DRIFT_M]",
+                   help="with --backbone gt: per-frame position (m) and rotation (deg) noise of the ground-truth "
+                        "poses, and an optional random-walk position drift (m at the clip's last frame); default 0,0. "
+                        "Works on recordings of IMU and ground truth without images")
     p.add_argument("--checkpoint", default=None, help="backbone checkpoint path (real 3DFMs)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--mode", choices=MODES, default="init",
@@ -180,11 +186,24 @@ def run(args: argparse.Namespace) -> int:
     return 2 if errors else 0
 
 
+def _backbone(args: argparse.Namespace):
+    """The backbone of ``--backbone``, or the ground-truth pose instrument for ``gt``."""
+    from vi3_core.backbones import make_backbone
+
+    if args.backbone == "gt":
+        from vi3_core.backbones.ground_truth import GroundTruthPoses
+        from vi3_core.sim.visual import PoseNoise
+
+        return GroundTruthPoses(noise=PoseNoise.parse(args.gt_noise or "0,0"))
+    if args.gt_noise is not None:
+        raise ValueError("--gt-noise needs --backbone gt (the ground-truth pose instrument)")
+    return make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
+
+
 def _prepare(args: argparse.Namespace) -> tuple:
     """Options, backbone, one ``Evaluated`` per input (opened and checked: GT, calibration, enough frames; the
     sequence itself kept only for a single input) and the output paths, all checked before any clip runs."""
     from vi3_core.anchor import AnchorOptions
-    from vi3_core.backbones import make_backbone
     from vi3_core.errors import DataError, Vi3Error
     from vi3_core.eval import runner
 
@@ -213,7 +232,7 @@ def _prepare(args: argparse.Namespace) -> tuple:
     for item, name in zip(runs, unique_names([r.name for r in runs])):
         item.name, item.obj = name, {"sequence": name, **item.obj}
     outputs = output_paths(args, [r.name for r in runs])
-    backbone = make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
+    backbone = _backbone(args)
     return options, backbone, runs, outputs
 
 

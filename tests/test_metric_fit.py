@@ -1,0 +1,150 @@
+"""``vi3_core.init.metric_fit``: the backbone positions regressed on the IMU with an error model, over one clip and a
+window, its marginalisation, and the preintegration's bias Jacobians it rests on. Simulated EuRoC-like clips
+(``make_init_case``: EuRoC IMU noise, a 0.1 m/s^2 accelerometer bias, an unknown scale in [0.1, 10])."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vi3_core import so3
+from vi3_core.init import InitOptions, initialise
+from vi3_core.init.metric_fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps
+from vi3_core.preintegration import preintegrate
+from vi3_core.sim.imu import ImuNoise, imu_stamps, simulate_imu
+from vi3_core.sim.trajectory import make_trajectory
+from vi3_core.sim.visual import PoseNoise, make_init_case, noisy_poses
+
+#: An IMU model that says "exact": for noise-free data the fit must then be exact too.
+EXACT = ImuNoiseModel(accel_noise_density=0.0, gyro_noise_density=0.0, gyro_scale_error=0.0, rel_floor=0.0)
+REALISTIC = PoseNoise(pos_m=0.003, rot_deg=0.1)
+
+
+def _fit(case, noise: ImuNoiseModel | None = None):
+    noise = noise or ImuNoiseModel()
+    bg = case.bg
+    clips = [FitClip(case.stamps, case.geometry.T_wc)]
+    fit = MetricFit(clips, preintegrate(case.imu, fit_stamps(clips), bg, jacobians=True), case.T_BC, noise=noise,
+                    gravity_norm=9.81)
+    return fit.solve(fit.initial_state(case.g))
+
+
+def test_bias_jacobians_match_finite_differences():
+    case = make_init_case(3)
+    bg, ba = case.bg, np.array([0.05, -0.1, 0.08])
+    pre = preintegrate(case.imu, case.stamps, bg, ba, jacobians=True)
+    for i, e in enumerate(1e-6 * np.eye(3)):
+        moved = preintegrate(case.imu, case.stamps, bg + e, ba)
+        np.testing.assert_allclose(so3.log(moved.R @ np.swapaxes(pre.R, 1, 2)) / 1e-6, pre.J.phi_bg[..., i],
+                                   atol=1e-5)
+        np.testing.assert_allclose((moved.alpha - pre.alpha) / 1e-6, pre.J.alpha_bg[..., i], atol=1e-5)
+        np.testing.assert_allclose((moved.beta - pre.beta) / 1e-6, pre.J.beta_bg[..., i], atol=1e-5)
+        shifted = preintegrate(case.imu, case.stamps, bg, ba + e * 1e6)  # exact: linear in ba
+        np.testing.assert_allclose(shifted.alpha - pre.alpha, pre.J.alpha_ba[..., i], atol=1e-10)
+    assert np.abs(pre.J.alpha_bg).max() > 1e-3  # not trivially zero
+    corrected = pre.corrected(bg + 1e-3, ba + 0.02)
+    fresh = preintegrate(case.imu, case.stamps, bg + 1e-3, ba + 0.02)
+    np.testing.assert_allclose(corrected.alpha, fresh.alpha, atol=1e-6)
+    np.testing.assert_allclose(corrected.R, fresh.R, atol=1e-7)
+
+
+def test_single_clip_is_exact_without_noise():
+    case = make_init_case(5, imu_noise=ImuNoise.zero())
+    res = _fit(case, EXACT)
+    s = res.state
+    assert abs(res.scale[0] / case.scale - 1) < 1e-4 and res.converged  # the integrator's O(dt^2)
+    assert np.degrees(so3.angle_between(s.g, case.g)) < 1e-3 and np.linalg.norm(s.v[0] - case.v1) < 1e-4
+    assert res.sigma_v[0] * case.scale < 1e-5  # no visual noise found where there is none
+
+
+def test_eq_s_is_biased_low_by_visual_noise_and_the_fit_is_not():
+    """3 mm / 0.1 deg per frame: Eq. S divides by noise-inflated velocity increments (regression dilution)."""
+    ratio_fit, ratio_tls, z = [], [], []
+    for i in range(60):
+        case = make_init_case(i, pose_noise=REALISTIC)
+        res = _fit(case)
+        ratio_fit.append(res.scale[0] / case.scale)
+        z.append(abs(res.scale[0] / case.scale - 1) / res.scale_rel_sigma[0])
+        tls = initialise(case.geometry, case.imu, case.stamps, case.T_BC, options=InitOptions(scale_solver="tls"))
+        ratio_tls.append(tls.diagnostics["s_tls"] / case.scale)
+    assert abs(np.median(ratio_fit) - 1) < 0.03 and np.median(ratio_tls) < 0.7, (ratio_fit, ratio_tls)
+    assert np.mean(np.array(z) < 2) >= 0.9  # the error model covers the error
+
+
+def test_visual_noise_is_recovered_from_the_clips_own_residuals():
+    for pos in (0.001, 0.005):
+        found = []
+        for i in range(30):
+            case = make_init_case(i, pose_noise=PoseNoise(pos_m=pos))
+            found.append(_fit(case).sigma_v[0] * case.scale)
+        assert 0.75 * pos < np.median(found) < 1.25 * pos, (pos, np.median(found))
+
+
+def _window_case(seed: int, n_clips: int, pose_noise: PoseNoise, *, ba=(0.1, -0.05, 0.08)):
+    """Consecutive 8-frame clips (stride 2 at 20 Hz, one every 0.8 s) of one simulated flight, each with its own
+    scale: (imu, clips, true scales, true bg, true gravity [K,3] in each clip's first body frame, T_BC)."""
+    rng = np.random.default_rng(seed)
+    traj = make_trajectory("drone", seed=seed)
+    starts = 5.0 + 0.8 * np.arange(n_clips)
+    imu = simulate_imu(traj, imu_stamps(4.9, starts[-1] + 0.8), bg0=np.array([0.01, -0.02, 0.015]),
+                       ba0=np.asarray(ba), seed=seed)
+    T_BC = make_init_case(0).T_BC
+    scales = np.exp(rng.uniform(-1.0, 1.0, n_clips))
+    clips = []
+    for t0, s in zip(starts, scales):
+        stamps = t0 + np.arange(8) * 0.1
+        T_WC = traj.T_WB(stamps) @ T_BC
+        T_wc = so3.inv_T(T_WC[0]) @ T_WC
+        clips.append(FitClip(stamps, noisy_poses(T_wc, scale=s, noise=pose_noise, rng=rng), None))
+    g = np.einsum("kji,j->ki", traj.rotation(starts), np.array([0.0, 0.0, -9.81]))
+    return imu.samples, clips, scales, imu.bg[0], g, T_BC
+
+
+def _solve_window(imu, clips, bg, g, T_BC, sigma_v, priors=()):
+    """``sigma_v``: each clip's visual noise in its model units [K] (or one value for all)."""
+    clips = [FitClip(c.stamps, c.T_wc, s) for c, s in zip(clips, np.broadcast_to(sigma_v, len(clips)))]
+    pre = preintegrate(imu.window(clips[0].stamps[0], clips[-1].stamps[-1]), fit_stamps(clips), bg, jacobians=True)
+    fit = MetricFit(clips, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81)
+    return fit, fit.solve(fit.initial_state(g), priors=priors)
+
+
+def test_window_recovers_every_scale_gravity_and_the_accel_bias():
+    imu, clips, scales, bg, g, T_BC = _window_case(1, 8, REALISTIC)
+    _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
+    assert np.all(np.abs(res.scale / scales - 1) < 3 * res.scale_rel_sigma), (res.scale / scales, res.scale_rel_sigma)
+    assert np.median(np.abs(res.scale / scales - 1)) < 0.03
+    assert np.degrees(so3.angle_between(res.state.g, g[0])) < 1.0
+    assert np.linalg.norm(res.state.ba - np.array([0.1, -0.05, 0.08])) < 0.08
+
+
+def test_window_makes_weak_clips_observable_that_are_not_on_their_own():
+    imu, clips, scales, bg, g, T_BC = _window_case(2, 8, REALISTIC)
+    own = []
+    for c, g_k in zip(clips, g):
+        pre = preintegrate(imu, fit_stamps([c]), bg, jacobians=True)
+        fit = MetricFit([c], pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81)
+        own.append(fit.solve(fit.initial_state(g_k)).scale_rel_sigma[0])
+    _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
+    assert np.median(res.scale_rel_sigma) < 0.5 * np.median(own), (res.scale_rel_sigma, own)
+
+
+def test_marginalising_old_clips_keeps_their_evidence():
+    """Dropping the first clips into a prior leaves the remaining estimates where the full window put them (up to what
+    the prior deliberately loses: the biases' random walk, and the ties' and the fit's variance factors)."""
+    imu, clips, scales, bg, g, T_BC = _window_case(3, 7, REALISTIC)
+    fit, full = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
+    for drop in (1, 3):
+        prior = fit.marginalise(full, drop)
+        R_f = fit.pre.R[fit.blocks[drop].first]
+        _, reduced = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.003 / scales[drop:],
+                                   priors=(prior,))
+        assert np.all(np.abs(reduced.scale / full.scale[drop:] - 1) < 0.5 * full.scale_rel_sigma[drop:])
+        assert np.degrees(so3.angle_between(reduced.state.g, R_f.T @ full.state.g)) < 0.05
+        alone = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.003 / scales[drop:])[1]
+        assert np.median(reduced.scale_rel_sigma) < np.median(alone.scale_rel_sigma)  # the prior carries evidence
+
+
+@pytest.mark.parametrize("bad", ["model_noise", "bias_sigma"])
+def test_noise_model_rejects_invalid_values(bad):
+    with pytest.raises(ValueError, match="ImuNoiseModel"):
+        ImuNoiseModel(accel_noise_density=-1.0) if bad == "model_noise" else ImuNoiseModel(accel_bias_sigma=0.0)
