@@ -24,6 +24,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "each reported, then pooled")
     p.add_argument("--calib", default=None, metavar="YAML",
                    help="camera calibration (EuRoC sensor.yaml or Kalibr camchain) for bags that carry none")
+    p.add_argument("--image-topic", default=None, help="camera topic of a bag (sensor_msgs/Image or CompressedImage; "
+                   "default: /cam0/image_raw, else the only image topic)")
+    p.add_argument("--imu-topic", default=None, help="IMU topic of a bag (default: /imu0, else the only "
+                   "sensor_msgs/Imu topic)")
     p.add_argument("--backbone", default="classical", help="3DFM backbone (default: the embedded 'classical')")
     p.add_argument("--checkpoint", default=None, help="backbone checkpoint path (real 3DFMs)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
@@ -36,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--n", type=int, default=8, help="frames per clip (default 8)")
     p.add_argument("--stride", type=int, default=2, help="frame stride within a clip (default 2)")
     p.add_argument("--hop", type=int, default=None, help="frames between sliding clips (default n*stride)")
-    p.add_argument("--max-clips", type=int, default=None, help="evaluate at most this many clips (evenly spread)")
+    p.add_argument("--max-clips", type=_positive, default=None,
+                   help="evaluate at most this many clips (evenly spread; >= 1)")
     p.add_argument("--steps", type=int, default=None, help="TTR steps (default: the paper's 160)")
     p.add_argument("--ablate", action="store_true",
                    help="initialisation ablations: TLS vs OLS, all-pairs vs first-pair v1, gravity consensus on/off "
@@ -51,6 +56,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write TUM trajectories (for evo) here: per clip, and the chained odom_vi3.txt / odom_gt.txt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -97,7 +109,7 @@ def _evaluate(args: argparse.Namespace, path: str, backbone, options, *, several
     from vi3_core.eval import plot, report, runner, tum
     from vi3_ros.io.reader import open_sequence
 
-    seq = open_sequence(path, calib=args.calib)
+    seq = open_sequence(path, calib=args.calib, image_topic=args.image_topic, imu_topic=args.imu_topic)
     meta = {"backbone": args.backbone, "sequence": seq.name}
     online = None
     if args.ablate:
