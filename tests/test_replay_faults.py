@@ -122,7 +122,7 @@ def test_malformed_and_unsupported_frames_in_a_bag_are_dropped_and_named(bag3, t
     msgs = _read(tmp_path / "out.mcap")
     diag = [s for m in msgs["/diagnostics"] for s in _statuses({"d": [m]}, "d")]
     text = " ".join(s.message for s in diag)
-    assert "image_malformed" in text and "step" in text and "yuv422" in text and "shape [0, 0]" in text
+    assert "image_malformed" in text and "step" in text and "yuv422" in text  # the first drop of each reason
     assert diag[-1].values["drop_image_malformed"] == "1" and diag[-1].values["drop_image_unsupported"] == "2"
     assert any("image_malformed:1" in s.values["input_drops"] for s in _statuses(msgs))
     seq_ns = [stamp_to_ns(m.header.stamp) for m in msgs["/vi3_node/poses"]]
