@@ -13,7 +13,6 @@ setup(
     license="Apache-2.0",
     packages=find_packages(include=["vi3_core", "vi3_core.*", "vi3_ros", "vi3_ros.*", "msg_adapters",
                                     "msg_adapters.*"]),
-    package_data={"vi3_core": ["data/*"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from msg_adapters.errors import MalformedMessage
+from msg_adapters.errors import MalformedMessage, UnsupportedEncoding
 from msg_adapters.fields import str_field, uint8_buffer, uint_field
 from msg_adapters.stamps import make_header
 from msg_adapters.types import MessageTypes
@@ -45,7 +45,7 @@ _HOST_BIG_ENDIAN = sys.byteorder == "big"
 def _layout(encoding: Any) -> _Layout:
     layout = ENCODINGS.get(str_field(encoding, "encoding"))
     if layout is None:
-        raise MalformedMessage(f"encoding = {encoding!r} is not supported (supported: {', '.join(ENCODINGS)})")
+        raise UnsupportedEncoding(f"encoding = {encoding!r} is not supported (supported: {', '.join(ENCODINGS)})")
     return layout
 
 
@@ -87,7 +87,7 @@ def compressed_to_numpy(msg: Any) -> np.ndarray:
     fmt = str_field(msg.format, "format")
     low = fmt.lower()
     if "compresseddepth" in low or not any(k in low for k in ("jpeg", "jpg", "png")):
-        raise MalformedMessage(f"format = {fmt!r} is not a supported compression (jpeg or png)")
+        raise UnsupportedEncoding(f"format = {fmt!r} is not a supported compression (jpeg or png)")
     data = uint8_buffer(msg.data, "data")
     if data.size == 0:
         raise MalformedMessage(f"data is empty for format {fmt!r}")
@@ -100,6 +100,16 @@ def compressed_to_numpy(msg: Any) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
     return img
+
+
+def camera_frame(msg: Any) -> np.ndarray:
+    """A camera frame from a ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage`` (told apart by the
+    ``format`` field that only the latter has): [H,W] for one channel, else [H,W,3] RGB (alpha dropped), in the
+    message's dtype. Raises UnsupportedEncoding / MalformedMessage as the two decoders do."""
+    img = compressed_to_numpy(msg) if hasattr(msg, "format") else image_to_numpy(msg)
+    if img.ndim == 3 and img.shape[2] == 1:
+        return img[..., 0]
+    return img[..., :3] if img.ndim == 3 and img.shape[2] == 4 else img
 
 
 def numpy_to_image(arr: np.ndarray, *, encoding: str, stamp_ns: int, frame_id: str, types: MessageTypes) -> Any:

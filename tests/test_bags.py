@@ -90,9 +90,11 @@ def test_bad_bags_name_the_file_and_the_problem(cache_dir, tmp_path):
         for msg, ns in zip(samples_to_imus(seq.imu.select(slice(0, 5)), frame_id="imu4", types=ros1_types()),
                            seq.imu_ns[:5].tolist()):
             writer.write(conn, ns, noetic_typestore().serialize_ros1(msg, conn.msgtype))
-    with pytest.raises(DataError, match=r"imu_only.bag: no sensor_msgs/msg/Image topic; topics: \{'/imu0'"):
+    with pytest.raises(DataError, match=r"imu_only.bag: no image topic \(sensor_msgs/msg/Image or "
+                       r"sensor_msgs/msg/CompressedImage\); topics: \{'/imu0'"):
         open_sequence(imu_only)
-    with pytest.raises(DataError, match="topic '/cam1/image_raw' of type sensor_msgs/msg/Image not found"):
+    with pytest.raises(DataError, match=r"topic '/cam1/image_raw' is not in it; image topics \(sensor_msgs/msg/"
+                       r"Image or sensor_msgs/msg/CompressedImage\): /cam0/image_raw \(sensor_msgs/msg/Image\)"):
         open_sequence(bag, image_topic="/cam1/image_raw")
 
 

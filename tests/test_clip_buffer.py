@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from vi3_core.errors import DataError
+from vi3_core.types import ImuSamples
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
 
 CAM_DT_NS = 50_000_000  # 20 Hz
@@ -201,3 +202,18 @@ def test_imu_sample_costs_constant_memory_while_a_clip_waits():
         out += buf.add_imu(k * 5_000_000, [0, 0, 0], [0, 0, 9.81])
     (clip,) = _clips(out)
     assert clip.imu.t[0] < clip.stamps[0] < clip.stamps[-1] < clip.imu.t[-1] and len(clip.imu.t) == 13
+
+
+def test_imu_starting_exactly_at_the_first_frame_is_one_rule_with_the_evaluation():
+    """An IMU whose first sample has the first frame's stamp covers the clip (as ``ImuSamples.window`` in the
+    evaluation); one that starts a sample later is ``imu_missing``, said as "after"."""
+    out = _run(ClipBuffer(), _events(1.0, cam_t0=1.0, imu_t0=1.0))
+    clips = _clips(out)
+    assert clips and clips[0].imu.t[0] == clips[0].stamps[0] and not [o for o in out if isinstance(o, Drop)]
+    c = clips[0]
+    everything = ImuSamples(np.r_[c.imu.t, c.imu.t[-1] + IMU_DT], np.zeros((len(c.imu) + 1, 3)),
+                            np.zeros((len(c.imu) + 1, 3)))
+    np.testing.assert_array_equal(c.imu.t, everything.window(c.stamps[0], c.stamps[-1]).t)  # the same window
+    late = _run(ClipBuffer(), _events(1.0, cam_t0=1.0, imu_t0=1.0 + IMU_DT))
+    (drop,) = [o for o in late if isinstance(o, Drop) and o.clip == 0]
+    assert drop.reason == "imu_missing" and "after the clip's first frame" in drop.detail

@@ -7,8 +7,13 @@ Where rclpy is not installed the module skips with the reason; everything the no
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -91,3 +96,116 @@ def test_node_publishes_metric_outputs(cache_dir, tmp_path):
         feeder.destroy_node()
     finally:
         rclpy.shutdown()
+
+
+def _node_process(calib, *extra: str) -> subprocess.Popen:
+    """``vi3_node`` as its own process (``python -m vi3_ros.node``), as ros2 run starts it."""
+    return subprocess.Popen([sys.executable, "-m", "vi3_ros.node", "--ros-args", "-p", f"calib_file:={calib}",
+                             *extra], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _feed(asl, types, pub_img, pub_imu, *, seconds: float, speed: float = 1.0, corrupt_every: int = 0) -> None:
+    """Publish the sequence at ``speed`` x recording speed for at most ``seconds`` (looping); every
+    ``corrupt_every``-th image with a wrong step (malformed)."""
+    start, k = time.monotonic(), 0
+    while time.monotonic() - start < seconds:
+        t0, loop_start = None, time.monotonic()
+        offset = int((loop_start - start) * 1e9 * speed) + 10**9 * k
+        for ev in iter_events(asl):
+            t0 = ev.t if t0 is None else t0
+            delay = (ev.t - t0) / speed - (time.monotonic() - loop_start)
+            if delay > 0:
+                time.sleep(delay)
+            if time.monotonic() - start >= seconds:
+                return
+            stamp = ev.t_ns + offset
+            if isinstance(ev, ImageEvent):
+                msg = numpy_to_image(ev.image, encoding="mono8", stamp_ns=stamp, frame_id="cam0", types=types)
+                k += 1
+                if corrupt_every and k % corrupt_every == 0:
+                    msg.step += 1
+                pub_img.publish(msg)
+            else:
+                (msg,) = samples_to_imus(ImuSamples(np.array([stamp * 1e-9]), ev.gyro[None], ev.accel[None]),
+                                         frame_id="imu0", types=types, stamps_ns=[stamp])
+                pub_imu.publish(msg)
+        k += 1
+
+
+@pytest.fixture()
+def feeder_graph():
+    rclpy.init()
+    types = MessageTypes.from_rclpy()
+    feeder = rclpy.create_node("vi3_test_feeder")
+    pub_img = feeder.create_publisher(types.get("sensor_msgs/msg/Image"), "/cam0/image_raw", qos_profile_sensor_data)
+    pub_imu = feeder.create_publisher(types.get("sensor_msgs/msg/Imu"), "/imu0", qos_profile_sensor_data)
+    diag: list = []
+    feeder.create_subscription(types.get("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", diag.append,
+                               RELIABLE)
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(feeder)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    yield types, pub_img, pub_imu, diag
+    executor.shutdown()
+    feeder.destroy_node()
+    rclpy.shutdown()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_mid_clip_exits_zero_within_two_seconds(cache_dir, tmp_path, feeder_graph, sig):
+    """SIGTERM, and SIGINT inherited as ignored (as under a launcher or a script's background job), while the worker
+    is in the backbone: exit 0 within 2 s, no traceback."""
+    types, pub_img, pub_imu, _ = feeder_graph
+    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+    calib = tmp_path / "cam0.yaml"
+    write_euroc_sensor_yaml(EUROC_CAM0, calib)
+    ignore = (lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if sig == signal.SIGINT else None
+    proc = subprocess.Popen([sys.executable, "-m", "vi3_ros.node", "--ros-args", "-p", f"calib_file:={calib}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=ignore)
+    time.sleep(6.0)  # start-up and discovery
+    _feed(asl, types, pub_img, pub_imu, seconds=1.0)  # the first clip is complete: the worker is busy with it
+    time.sleep(0.1)
+    t0 = time.monotonic()
+    proc.send_signal(sig)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and time.monotonic() - t0 < 2.0, out
+    assert "Traceback" not in out
+
+
+def test_malformed_images_are_counted_on_diagnostics_and_a_flood_keeps_memory_bounded(cache_dir, tmp_path,
+                                                                                     feeder_graph):
+    """A 5x flood for 10 s with every 7th image malformed: drops named on /diagnostics (image_malformed counted,
+    worker_busy for clips the busy worker replaced), resident memory bounded, the node alive and exiting 0."""
+    types, pub_img, pub_imu, diag = feeder_graph
+    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+    calib = tmp_path / "cam0.yaml"
+    write_euroc_sensor_yaml(EUROC_CAM0, calib)
+    proc = _node_process(calib)
+    time.sleep(6.0)
+    rss = []
+    start = time.monotonic()
+    feeding = threading.Thread(target=_feed, args=(asl, types, pub_img, pub_imu),
+                               kwargs={"seconds": 10.0, "speed": 5.0, "corrupt_every": 7})
+    feeding.start()
+    while feeding.is_alive():
+        rss.append(int(Path(f"/proc/{proc.pid}/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20)
+        time.sleep(0.5)
+    time.sleep(3.0)
+    statuses = [s for m in diag for s in diagnostic_array_to_statuses(m) if s.name == "vi3: pipeline"]
+    last = statuses[-1].values
+    assert int(last.get("drop_image_malformed", 0)) > 10 and "image_malformed" in " ".join(s.message for s in statuses)
+    assert int(last["clips_emitted"]) > 5 and proc.poll() is None
+    half = len(rss) // 2
+    assert max(rss[half:]) < 1.1 * max(rss[:half]) + 50, rss  # no growth over the second half of the flood
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0, out
+    print(f"flood: {time.monotonic() - start:.0f} s, RSS MB first half max {max(rss[:half]):.0f}, second half max "
+          f"{max(rss[half:]):.0f}; drops {({k: v for k, v in last.items() if k.startswith('drop_')})}")
+
+
+def test_cond_with_a_backbone_that_cannot_condition_is_a_clear_start_error(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "vi3_ros.node", "--ros-args", "-p", "mode:=cond"],
+                          capture_output=True, text=True, timeout=120)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2 and "backbones that can: pi3x, da3" in out and "Traceback" not in out

@@ -107,7 +107,7 @@ OPEN_GATE = {"max_scale_sigma": 10.0}
 def _run(inp: Path, out: Path, **params) -> tuple[object, dict[str, list]]:
     values = resolve({"calib_file": str(params.pop("calib", _calib_file(out.parent))), **OPEN_GATE, **params})
     summary = replay(inp, out, values=values, progress=False)
-    return summary, _read(out)
+    return summary, _read(summary.output)  # OUT, or OUT.partial.mcap when no clip produced a result
 
 
 def _calib_file(folder: Path) -> Path:
@@ -416,6 +416,7 @@ def test_calibration_messages_from_every_bag_form(calibrated_inputs, form, tmp_p
         _, msgs = _run(calibrated_inputs[form], tmp_path / "no_tf.mcap", calib="",
                        camera_info_topic="/cam0/camera_info")
         assert _outcomes(msgs)[0][1:] == ("skipped", "calibration_missing")
+        assert not (tmp_path / "no_tf.mcap").exists()  # no result: the statuses are kept as no_tf.partial.mcap
         assert "extrinsics" in _statuses(msgs)[0].values["detail"]
 
 

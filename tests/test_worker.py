@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -61,3 +62,34 @@ def test_synchronous_mode_processes_every_job_in_order_on_caller_thread():
     assert [j for j, _ in seen] == list(range(10))
     assert {name for _, name in seen} == {threading.current_thread().name}
     assert w.replaced == 0 and w.processed == 10 and w._thread is None
+
+
+def test_a_failing_error_report_does_not_kill_the_worker_and_stop_does_not_wait_out_a_long_job():
+    """The node's shutdown: reporting an error raises too (publishing on a dead context); the worker goes on with
+    the newer job; ``stop(timeout)`` returns after the timeout while a job is still running."""
+    gate, started, done = threading.Event(), threading.Event(), []
+
+    def handle(job):
+        if job == "bad":
+            raise RuntimeError("publish on a shut-down context")
+        if job == "slow":
+            started.set()
+            gate.wait(10)
+        done.append(job)
+
+    def on_error(job, exc):
+        raise RuntimeError("publish on a shut-down context")
+
+    w = Worker(handle, on_error=on_error)
+    w.submit("bad")
+    assert w.wait_idle(5)
+    w.submit("next")
+    assert w.wait_idle(5) and done == ["next"] and (w.errors, w.unreported) == (1, 1)
+    w.submit("slow")
+    assert started.wait(5)
+    t0 = time.monotonic()
+    w.stop(timeout=0.2)
+    assert time.monotonic() - t0 < 1.0 and w.alive
+    gate.set()
+    w._thread.join(5)
+    assert not w.alive

@@ -21,3 +21,7 @@ class BackboneUnavailable(Vi3Error, ImportError):
 
 class ModeNotSupported(Vi3Error):
     """A backbone was asked for an anchoring mode it cannot do (e.g. conditioning on a model without it)."""
+
+
+class DeviceUnavailable(Vi3Error):
+    """The torch device asked for does not exist here (no CUDA, no such GPU, a malformed name)."""

@@ -23,6 +23,16 @@ def _f64(a, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
     return arr
 
 
+def window_bounds(t: np.ndarray, t0: float, t1: float, margin: int) -> tuple[int, int]:
+    """[i0, i1) into sorted stamps ``t`` of the IMU window of [t0, t1]: the samples with t0 <= t <= t1 plus
+    ``margin`` samples on each side where they exist. The one rule of every clip's IMU (evaluation and the node's
+    clip buffer): the window covers the clip when ``t[i0] <= t0`` and ``t[i1 - 1] >= t1``, so a sample exactly at
+    the first (last) frame is enough."""
+    i0 = max(int(np.searchsorted(t, t0, side="left")) - margin, 0)
+    i1 = min(int(np.searchsorted(t, t1, side="right")) + margin, len(t))
+    return i0, i1
+
+
 @dataclass(frozen=True)
 class ImuSamples:
     """IMU samples in the body frame B.
@@ -54,10 +64,9 @@ class ImuSamples:
         return len(self.t)
 
     def window(self, t0: float, t1: float, margin: int = 1) -> ImuSamples:
-        """Samples with t0 <= t <= t1, plus ``margin`` samples on each side (for edge interpolation)."""
-        i0 = max(int(np.searchsorted(self.t, t0, side="left")) - margin, 0)
-        i1 = min(int(np.searchsorted(self.t, t1, side="right")) + margin, len(self.t))
-        return self.select(slice(i0, i1))
+        """Samples with t0 <= t <= t1, plus ``margin`` samples on each side (for edge interpolation): see
+        ``window_bounds``."""
+        return self.select(slice(*window_bounds(self.t, t0, t1, margin)))
 
     def select(self, idx) -> ImuSamples:
         """Rows ``idx`` (slice, index array or boolean mask)."""

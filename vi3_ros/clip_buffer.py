@@ -15,8 +15,9 @@ preintegration need a sample on each side). Faults become ``Drop`` events with a
 - ``image_out_of_order`` / ``image_duplicate`` / ``imu_out_of_order`` / ``imu_duplicate``: the message is dropped;
 - ``frame_gap``: two consecutive frames further apart than ``max_frame_gap``; open clips are dropped and
   collection restarts at the new frame;
-- ``imu_missing``: the IMU buffer does not reach back to the clip's first frame (IMU started late, or the
-  bounded buffer overflowed);
+- ``imu_missing``: the IMU buffer does not reach back to the clip's first frame, i.e. has no sample at or before
+  it (IMU started late, or the bounded buffer overflowed); the clip's IMU is ``vi3_core.types.window_bounds``'s
+  window, as in the evaluation;
 - ``imu_stalled``: no IMU past the clip's last frame ``imu_timeout`` seconds (camera time) after it;
 - ``frame_overflow``: more clips waiting for IMU than ``max_pending`` (the oldest is dropped).
 
@@ -32,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vi3_core.errors import DataError
-from vi3_core.types import ImuSamples
+from vi3_core.types import ImuSamples, window_bounds
 
 
 @dataclass(frozen=True)
@@ -230,6 +231,10 @@ class ClipBuffer:
         out += self._expire(t)
         return out + self._release()
 
+    def last_stamp_ns(self) -> int:
+        """The newest message stamp taken (camera or IMU, int ns; 0 before any)."""
+        return max(self._last_image_ns or 0, self._last_imu_ns or 0)
+
     # ---- internals ------------------------------------------------------------------------------------------
 
     def _drop(self, reason: str, t: float, stamp_ns: int, detail: str, clip: int = -1) -> Drop:
@@ -286,17 +291,15 @@ class ClipBuffer:
         while self._pending and len(t) >= m and t[-m] > self._pending[0].stamps[-1]:
             clip = self._pending.popleft()
             t0, t1 = float(clip.stamps[0]), float(clip.stamps[-1])
-            i1 = int(np.searchsorted(t, t1, side="right"))
-            i0 = int(np.searchsorted(t, t0, side="left"))
-            if i0 < m:
+            i0, i1 = window_bounds(t, t0, t1, m)  # the evaluation's rule: a sample at or before t0 is enough
+            if t[i0] > t0:
                 out.append(self._clip_drop("imu_missing", clip, 0, f"IMU buffer starts at {t[0]:.6f} s, after the "
-                                           f"clip's first frame at {t0:.6f} s (needs {m} sample(s) before)"))
+                                           f"clip's first frame at {t0:.6f} s (needs a sample at or before it)"))
                 continue
             hist = None
             if self.options.history > 0:
-                h0 = min(i0 - m, int(np.searchsorted(t, t0 - self.options.history, side="left")))
-                hist = self._imu.samples(h0, i1 + m)
+                h0 = min(i0, int(np.searchsorted(t, t0 - self.options.history, side="left")))
+                hist = self._imu.samples(h0, i1)
             self.clips += 1
-            out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images,
-                               self._imu.samples(i0 - m, i1 + m), hist))
+            out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images, self._imu.samples(i0, i1), hist))
         return out

@@ -3,31 +3,42 @@
 Only wiring lives here: parameters declared with descriptors from ``vi3_ros.params``, subscriptions with the
 sensor-data QoS (best effort), reliable publishers for ``vi3_ros.pipeline.OUTPUTS``, a timer for the Pipeline's
 periodic diagnostics, and callbacks that hand messages to the Pipeline (images and IMU converted with
-``msg_adapters``; CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does).
+``msg_adapters``; CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does). A message that
+cannot be decoded is dropped and counted by the Pipeline (``drop_input``) like every other drop.
 This is the only module that imports rclpy; it uses the API that ROS 2 Humble and Jazzy share.
 Run: ``ros2 run vi3_ros vi3_node --ros-args --params-file config/euroc.yaml`` or ``launch/vi3.launch.py``.
+
+Shutdown (SIGINT, SIGTERM, also with SIGINT inherited as ignored): exit code 0 within ~1 s, even while a clip is in
+the backbone: the clip's outputs are discarded and the worker thread is not waited for beyond ``SHUTDOWN_WAIT_S``.
 """
 
 from __future__ import annotations
 
+import os
 import sys
+from collections.abc import Callable
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
-from msg_adapters.image import image_to_numpy
+from msg_adapters.errors import drop_reason
+from msg_adapters.image import camera_frame
 from msg_adapters.imu import imu_to_sample
 from msg_adapters.stamps import stamp_to_ns
 from msg_adapters.types import MessageTypes
-from vi3_core.errors import DataError
+from vi3_core.errors import DataError, Vi3Error
+from vi3_ros.io.topics import IMAGE_TRANSPORTS
 from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve
 from vi3_ros.pipeline import OUTPUTS, Pipeline, make_pipeline
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+SHUTDOWN_WAIT_S = 0.5  # s the worker may take to finish its clip at shutdown
+IMAGE_TYPE_POLL_S = 0.5  # s between looks at the ROS graph for the image topic's type (image_transport auto)
 _PARAM_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
                 float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
 
@@ -45,14 +56,24 @@ def descriptor(p: Param) -> ParameterDescriptor:
 
 
 class _PublisherSink:
-    """OutputSink over rclpy publishers (thread-safe: rclpy publishers may be used from the worker thread)."""
+    """OutputSink over rclpy publishers (thread-safe: rclpy publishers may be used from the worker thread). After
+    the context has shut down nothing is published (a publish would raise)."""
 
     def __init__(self, node: Node, types: MessageTypes) -> None:
+        self.context = node.context
         self.publishers = {key: node.create_publisher(types.get(out.msgtype), out.topic, RELIABLE)
                            for key, out in OUTPUTS.items()}
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
-        self.publishers[key].publish(msg)
+        if self.context.ok():
+            self.publishers[key].publish(msg)
+
+
+def _stamp_or_none(msg: Any) -> int | None:
+    try:
+        return stamp_to_ns(msg.header.stamp)
+    except (DataError, AttributeError):
+        return None
 
 
 class Vi3Node(Node):
@@ -63,12 +84,19 @@ class Vi3Node(Node):
         for p in PARAMS:
             self.declare_parameter(p.name, p.default, descriptor(p))
         self.values = resolve({p.name: self.get_parameter(p.name).value for p in PARAMS})
-        types = MessageTypes.from_rclpy()
+        self.types = types = MessageTypes.from_rclpy()
         self.sink = _PublisherSink(self, types)
         self.pipeline: Pipeline = make_pipeline(self.values, sink=self.sink, types=types)
         v = self.values
-        self.create_subscription(types.get("sensor_msgs/msg/Image"), v["image_topic"], self._on_image,
-                                 qos_profile_sensor_data)
+        self.image_topic = self.resolve_topic_name(v["image_topic"])
+        self._image_sub = None
+        self._image_timer = None
+        self._waiting_logged = False
+        if v["image_transport"] == "auto":
+            self._image_timer = self.create_timer(IMAGE_TYPE_POLL_S, self._learn_image_type)
+            self._learn_image_type()
+        else:
+            self._subscribe_images(IMAGE_TRANSPORTS[v["image_transport"]][0])
         self.create_subscription(types.get("sensor_msgs/msg/Imu"), v["imu_topic"], self._on_imu,
                                  qos_profile_sensor_data)
         if v["camera_info_topic"]:
@@ -79,49 +107,86 @@ class Vi3Node(Node):
                                      TF_STATIC)
         self.create_timer(v["diagnostics_period"], self._on_timer)
         self.get_logger().info(f"vi3_node: backbone {v['backbone']} on {v['device']}, mode {v['mode']}, "
-                               f"images {v['image_topic']}, IMU {v['imu_topic']}")
+                               f"images {self.image_topic} ({v['image_transport']}), IMU {v['imu_topic']}")
 
-    def _guard(self, what: str, fn, *args) -> None:
-        """A malformed message is dropped with a (throttled) warning, never fatal."""
+    # ---- image subscription ----------------------------------------------------------------------------------
+
+    def _subscribe_images(self, msgtype: str) -> None:
+        self._image_sub = self.create_subscription(self.types.get(msgtype), self.image_topic, self._on_image,
+                                                   qos_profile_sensor_data)
+        self.image_type = msgtype
+
+    def _learn_image_type(self) -> None:
+        """image_transport auto: subscribe with the type the image topic's publishers have, once the graph shows
+        exactly one of sensor_msgs/Image and sensor_msgs/CompressedImage on it."""
+        if self._image_sub is not None:
+            return
+        offered = dict(self.get_topic_names_and_types()).get(self.image_topic, [])
+        found = [t for t in offered if t in IMAGE_TRANSPORTS["auto"]]
+        if len(found) == 1:
+            self._subscribe_images(found[0])
+            self.destroy_timer(self._image_timer)
+            self.get_logger().info(f"images: {self.image_topic} carries {found[0]}")
+        elif not self._waiting_logged:
+            self._waiting_logged = True
+            why = f"its publishers offer {offered}" if offered else "no publisher yet"
+            self.get_logger().warning(f"images: waiting to learn the type of {self.image_topic} ({why}); set "
+                                      "image_transport raw or compressed to subscribe at once")
+
+    # ---- callbacks -------------------------------------------------------------------------------------------
+
+    def _guard(self, kind: str, msg: Any, fn: Callable[[], None]) -> None:
+        """A message that cannot be decoded is dropped and counted by the Pipeline, never fatal."""
         try:
-            fn(*args)
+            fn()
         except DataError as exc:
-            self.get_logger().warning(f"dropped a malformed {what} message: {exc}", throttle_duration_sec=5.0)
+            self.pipeline.drop_input(drop_reason(kind, exc), _stamp_or_none(msg), str(exc))
 
     def _on_image(self, msg) -> None:
-        self._guard("image", lambda: self.pipeline.add_image(stamp_to_ns(msg.header.stamp), image_to_numpy(msg)))
+        self._guard("image", msg, lambda: self.pipeline.add_image(stamp_to_ns(msg.header.stamp), camera_frame(msg)))
 
     def _on_imu(self, msg) -> None:
         def add() -> None:
             s = imu_to_sample(msg)
             self.pipeline.add_imu(s.t_ns, s.gyro, s.accel, s.orientation)
-        self._guard("IMU", add)
+        self._guard("imu", msg, add)
 
     def _on_camera_info(self, msg) -> None:
-        self._guard("CameraInfo", self.pipeline.add_camera_info, msg)
+        self._guard("camera_info", msg, lambda: self.pipeline.add_camera_info(msg))
 
     def _on_tf_static(self, msg) -> None:
-        self._guard("/tf_static", self.pipeline.add_tf_static, msg)
+        self._guard("tf_static", msg, lambda: self.pipeline.add_tf_static(msg))
 
     def _on_timer(self) -> None:
         self.pipeline.publish_diagnostics(self.get_clock().now().nanoseconds)
 
     def destroy_node(self) -> None:
-        self.pipeline.close()
+        self.pipeline.close(timeout=SHUTDOWN_WAIT_S)
         super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args if args is not None else sys.argv)
-    node = Vi3Node()
+    try:
+        node = Vi3Node()
+    except Vi3Error as exc:  # a configuration the node cannot run with: say why, no traceback
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
+        rclpy.shutdown()
+        return 2
     try:
         rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass  # SIGINT / SIGTERM (rclpy's signal handlers shut the context down): a normal end
     finally:
         node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()
+    if node.pipeline.worker.alive:
+        # A clip is still in the backbone, which cannot be interrupted; its outputs are discarded anyway. Do not
+        # let interpreter teardown race that thread: leave now, with the exit code of a clean shutdown.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
 
 

@@ -83,7 +83,11 @@ def _option(name: str, cls: type, field: str, description: str, *, range: tuple[
 
 PARAMS: tuple[Param, ...] = (
     # inputs
-    Param("image_topic", "/cam0/image_raw", "camera images (sensor_msgs/Image, mono8/rgb8/bgr8...)"),
+    Param("image_topic", "/cam0/image_raw", "camera images (sensor_msgs/Image, mono8/rgb8/bgr8..., or "
+          "sensor_msgs/CompressedImage, JPEG/PNG: see image_transport)"),
+    Param("image_transport", "auto", "message type on image_topic: raw (sensor_msgs/Image), compressed "
+          "(sensor_msgs/CompressedImage), auto (node: the type its publishers have, learnt from the ROS graph; "
+          "replay: the recording's)", choices=("auto", "raw", "compressed")),
     Param("imu_topic", "/imu0", "IMU samples (sensor_msgs/Imu)"),
     Param("camera_info_topic", "", "sensor_msgs/CameraInfo with the intrinsics; empty: use calib_file"),
     Param("calib_file", "", "EuRoC cam0/sensor.yaml or Kalibr camchain-imucam.yaml: intrinsics, distortion and "

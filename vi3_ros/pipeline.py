@@ -9,9 +9,14 @@ Which result a message carries: ``~/poses``, ``~/depth`` and ``~/points`` carry 
 is published first on ``~/init/poses``, ``~/init/depth`` and ``~/init/points``. Every result is described on
 ``~/status`` (key ``result``: init | cond | ttr | none | skipped).
 
-Dropped input messages (``ClipBuffer`` drops) are counted by reason, exactly, and reported on ``/diagnostics`` by
-``publish_diagnostics`` once per ``diagnostics_period`` (the node's timer; replay in bag time) and in the next clip's
-status; only the first drop of a reason not seen in the current or the previous period is published at once.
+Dropped input messages are counted by reason, exactly, and reported on ``/diagnostics`` by ``publish_diagnostics``
+once per ``diagnostics_period`` (the node's timer; replay in bag time) and in the next clip's status; only the first
+drop of a reason not seen in the current or the previous period is published at once. They are the ``ClipBuffer``'s
+drops, the frames ``add_image`` refuses (``image_unsupported``: not 8-bit mono or RGB; ``image_size_mismatch``: not
+the calibrated size) and the messages the node or replay could not decode (``drop_input``: ``image_malformed``,
+``image_unsupported``, ``imu_malformed``, ...). Every frame of a clip is checked against the calibration again when
+the clip is processed (the calibration may have arrived since): a misfit skips the clip as ``image_size_mismatch``;
+a frame is never stretched to the calibrated size.
 
 Frames (see docs/node.md): poses and points are in ``clip_frame``, the clip's first camera (OpenCV optical axes,
 metric), or in ``odom_frame`` with ``outputs_in_odom``; depth images in ``camera_frame``; TF ``camera_frame ->
@@ -143,6 +148,12 @@ class Calibration:
         if self._T_BC is None or not np.array_equal(self._T_BC, T_BC):
             self._T_BC, self._cached = T_BC, None
 
+    def size(self) -> tuple[int, int] | None:
+        """(width, height) of the frames the current intrinsics are for, or None while there are none."""
+        if self._intrinsics is not None:
+            return tuple(self._intrinsics[3])
+        return None if self._file is None else tuple(self._file.size)
+
     def current(self) -> CameraCalib:
         if self._cached is not None:
             return self._cached
@@ -160,14 +171,31 @@ class Calibration:
         return self._cached
 
 
+class FrameMisfit(CalibrationError):
+    """A frame of a clip does not fit the calibration (``vi3_core.dataset.calib.CameraCalib.check_frame``)."""
+
+
 def make_clip(raw: RawClip, calib: CameraCalib) -> Clip:
-    """Undistort the raw frames of ``raw`` with ``calib`` into a Clip (K of the undistorted images)."""
+    """Undistort the raw frames of ``raw`` with ``calib`` into a Clip (K of the undistorted images). Raises
+    FrameMisfit naming the first frame whose size is not the calibrated one."""
+    for i, im in enumerate(raw.images):
+        problem = calib.check_frame(im)
+        if problem is not None:
+            raise FrameMisfit(f"frame {i} (stamp {int(raw.stamps_ns[i])} ns): {problem}")
     und = calib.undistorter()
-    h, w = raw.images[0].shape[:2]
-    if (w, h) != tuple(calib.size):
-        raise CalibrationError(f"frames are {w}x{h} but the calibration is for {calib.size[0]}x{calib.size[1]}")
     images = np.stack([und.apply(im) for im in raw.images])
     return Clip(stamps=raw.stamps, images=images, K=und.K, T_BC=calib.T_BC, imu=raw.imu, imu_history=raw.imu_history)
+
+
+def frame_problem(image: np.ndarray) -> str | None:
+    """Why the pipeline cannot take a raw frame whatever the calibration (not [H,W] or [H,W,3] uint8, or empty),
+    or None."""
+    shape, dtype = np.shape(image), np.asarray(image).dtype
+    if dtype != np.uint8:
+        return f"frame of dtype {dtype} (shape {list(shape)}): the pipeline takes 8-bit mono or RGB frames"
+    if not (len(shape) == 2 or (len(shape) == 3 and shape[2] == 3)) or 0 in shape:
+        return f"frame of shape {list(shape)}: the pipeline takes [H,W] mono or [H,W,3] RGB frames"
+    return None
 
 
 def cloud_points(geometry: Geometry, frames: np.ndarray, *, stride: int, conf_quantile: float,
@@ -230,16 +258,44 @@ class Pipeline:
         self._period_drops: collections.Counter[str] = collections.Counter()
         self._previous_reasons: frozenset[str] = frozenset()
         self.outcomes: collections.Counter[str] = collections.Counter()
+        self.message_drops: collections.Counter[str] = collections.Counter()  # drops before the buffer, by reason
+        self.closing = False  # set by close(): outputs of a clip still running are not published
         self.worker = Worker(self._process, on_error=self._on_error, on_replaced=self._on_replaced,
                              synchronous=synchronous)
 
     # ---- inputs (any thread) --------------------------------------------------------------------------------
 
     def add_image(self, stamp_ns: int, image: np.ndarray) -> None:
-        """A camera frame: message stamp (camera time, ns) and the raw image [H,W] or [H,W,3] uint8."""
+        """A camera frame: message stamp (camera time, ns) and the raw image [H,W] or [H,W,3] uint8. Any other
+        frame is dropped as ``image_unsupported``, one whose size is not the calibration's (when it is known) as
+        ``image_size_mismatch``."""
+        problem = frame_problem(image)
+        if problem is not None:
+            self.drop_input("image_unsupported", stamp_ns, problem)
+            return
+        size = self.calibration.size()
+        h, w = image.shape[:2]
+        if size is not None and (w, h) != size:
+            self.drop_input("image_size_mismatch", stamp_ns, f"frame is {w}x{h} but the calibration is for "
+                            f"{size[0]}x{size[1]}")
+            return
         with self._lock:
             events = self.buffer.add_image(stamp_ns, image)
         self._dispatch(events)
+
+    def drop_input(self, reason: str, stamp_ns: int | None, detail: str) -> None:
+        """Count one input message dropped before the buffer (e.g. ``image_malformed``: it could not be decoded),
+        by ``reason``, like the buffer's drops; ``stamp_ns`` its header stamp (None: unreadable)."""
+        with self._lock:
+            self.message_drops[reason] += 1
+            stamp = self.buffer.last_stamp_ns() if stamp_ns is None else int(stamp_ns)
+        self._dispatch([Drop(reason, stamp * 1e-9, stamp, detail)])
+
+    @property
+    def drop_counts(self) -> collections.Counter[str]:
+        """Every dropped input message and clip so far, by reason (the buffer's and ``drop_input``'s)."""
+        with self._lock:
+            return self.buffer.counts + self.message_drops
 
     def add_imu(self, stamp_ns: int, gyro, accel, orientation=None) -> None:
         """An IMU sample: message stamp (IMU time, ns), gyro [3] rad/s, accel [3] m/s^2, orientation [4] xyzw or
@@ -261,9 +317,12 @@ class Pipeline:
             if parent.lstrip("/") == imu and child.lstrip("/") == camera:
                 self.calibration.set_extrinsics(T)
 
-    def close(self) -> None:
-        self.worker.wait_idle(None if self.worker.synchronous else 60.0)
-        self.worker.stop()
+    def close(self, timeout: float | None = None) -> None:
+        """Stop: replay (synchronous) has nothing left to wait for; the node's worker thread gets up to ``timeout``
+        s to finish the clip it is processing (whose outputs are then no longer published: the node is shutting
+        down), a waiting clip is discarded."""
+        self.closing = True
+        self.worker.stop(timeout)
 
     def _dispatch(self, events: list[RawClip | Drop]) -> None:
         for ev in events:
@@ -293,7 +352,11 @@ class Pipeline:
         except CalibrationError as exc:
             self._report_skip(raw.index, "calibration_missing", str(exc), stamp_ns)
             return
-        clip = make_clip(raw, calib)
+        try:
+            clip = make_clip(raw, calib)
+        except FrameMisfit as exc:
+            self._report_skip(raw.index, "image_size_mismatch", str(exc), stamp_ns)
+            return
         # The initialisation's own data checks, before the backbone: a clip it would reject costs no inference.
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self._init_options)
         if reason is not None:
@@ -329,6 +392,11 @@ class Pipeline:
 
     # ---- outputs --------------------------------------------------------------------------------------------
 
+    def _publish(self, key: str, msg: Any, stamp_ns: int) -> None:
+        """One output message to the sink, unless the pipeline is closing (the node shuts down mid-clip)."""
+        if not self.closing:
+            self.sink.publish(key, msg, stamp_ns)
+
     def _publish_geometry(self, raw: RawClip, geometry: Geometry, *, prefix: str,
                           T_OC1: np.ndarray | None = None) -> None:
         """Poses, depth, points (and the clip TF) of a result; with ``T_OC1`` [4,4] (the clip's first camera in
@@ -337,22 +405,22 @@ class Pipeline:
         stamp = int(raw.stamps_ns[-1])
         frame = v["clip_frame"] if T_OC1 is None else v["odom_frame"]
         T_wc = geometry.T_wc if T_OC1 is None else T_OC1 @ geometry.T_wc
-        self.sink.publish(prefix + "poses", pose_array(T_wc, stamp_ns=stamp, frame_id=frame, types=types), stamp)
+        self._publish(prefix + "poses", pose_array(T_wc, stamp_ns=stamp, frame_id=frame, types=types), stamp)
         frames = np.arange(geometry.n) if v["depth_frames"] == "all" else np.array([geometry.n - 1])
         for i in frames:
             s = int(raw.stamps_ns[i])
-            self.sink.publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s,
+            self._publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s,
                                                                frame_id=v["camera_frame"], types=types), s)
         frames = np.arange(geometry.n) if v["points_frames"] == "all" else np.array([geometry.n - 1])
         pts, conf = cloud_points(geometry, frames, stride=v["points_stride"], conf_quantile=v["points_conf_quantile"],
                                  max_depth=v["points_max_depth"])
         if T_OC1 is not None:
             pts = (pts.astype(np.float64) @ T_OC1[:3, :3].T + T_OC1[:3, 3]).astype(np.float32)
-        self.sink.publish(prefix + "points", point_cloud2(pts, confidence=conf, stamp_ns=stamp,
+        self._publish(prefix + "points", point_cloud2(pts, confidence=conf, stamp_ns=stamp,
                                                           frame_id=frame, types=types), stamp)
         if v["publish_tf"] and not prefix:
             T_last_clip = np.linalg.inv(geometry.T_wc[-1])
-            self.sink.publish("tf", tf_message([(T_last_clip, v["camera_frame"], v["clip_frame"], stamp)],
+            self._publish("tf", tf_message([(T_last_clip, v["camera_frame"], v["clip_frame"], stamp)],
                                                types=types), stamp)
 
     def _publish_odom(self, raw: RawClip, clip: Clip, chained: ChainedClip) -> None:
@@ -362,7 +430,7 @@ class Pipeline:
         stamp = int(raw.stamps_ns[-1])
         T = chained.T_OB[-1]
         gyro = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)])
-        self.sink.publish("odom", odometry(T, T[:3, :3].T @ chained.v_O[-1], gyro - self.online.state.bg,
+        self._publish("odom", odometry(T, T[:3, :3].T @ chained.v_O[-1], gyro - self.online.state.bg,
                                            stamp_ns=stamp, frame_id=v["odom_frame"], child_frame_id=v["base_frame"],
                                            types=types), stamp)
         traj = self.online.trajectory
@@ -371,10 +439,10 @@ class Pipeline:
         self._path_ns.update(zip(clip.stamps.tolist(), raw.stamps_ns.tolist()))
         self._path_ns = {t: self._path_ns[t] for t in traj.stamps[keep].tolist()}
         stamps_ns = list(self._path_ns.values())
-        self.sink.publish("path", path(traj.T_OB[keep], stamp_ns=stamp, frame_id=v["odom_frame"], types=types,
+        self._publish("path", path(traj.T_OB[keep], stamp_ns=stamp, frame_id=v["odom_frame"], types=types,
                                        stamps_ns=stamps_ns), stamp)
         if v["publish_odom_tf"]:
-            self.sink.publish("tf", tf_message([(T, v["odom_frame"], v["base_frame"], stamp)], types=types), stamp)
+            self._publish("tf", tf_message([(T, v["odom_frame"], v["base_frame"], stamp)], types=types), stamp)
 
     def _take_input_drops(self) -> str:
         """The input drops since the previous clip status (``reason:count, ...``), and a fresh count."""
@@ -417,7 +485,7 @@ class Pipeline:
                    final=True)
 
     def _emit(self, report: ClipReport, status: DiagStatus, *, final: bool) -> None:
-        self.sink.publish("status", diagnostic_array([status], stamp_ns=report.stamp_ns, types=self.types),
+        self._publish("status", diagnostic_array([status], stamp_ns=report.stamp_ns, types=self.types),
                           report.stamp_ns)
         if final:
             with self._lock:
@@ -432,7 +500,7 @@ class Pipeline:
             values = {"clips_emitted": self.buffer.clips, "worker_processed": self.worker.processed,
                       "worker_replaced": self.worker.replaced, "worker_errors": self.worker.errors}
             values.update({f"outcome_{k}": n for k, n in sorted(self.outcomes.items())})
-            values.update({f"drop_{k}": n for k, n in sorted(self.buffer.counts.items())})
+            values.update({f"drop_{k}": n for k, n in sorted((self.buffer.counts + self.message_drops).items())})
         return DiagStatus(level, DIAG_NAME, message, self.values["clip_frame"], values)
 
     def publish_diagnostics(self, stamp_ns: int) -> None:
@@ -449,7 +517,7 @@ class Pipeline:
 
     def _publish_diagnostics(self, level: Level, message: str, stamp_ns: int) -> None:
         msg = diagnostic_array([self.diagnostics_status(level, message)], stamp_ns=stamp_ns, types=self.types)
-        self.sink.publish("diagnostics", msg, stamp_ns)
+        self._publish("diagnostics", msg, stamp_ns)
 
 
 def make_pipeline(values: dict[str, Any], *, sink: OutputSink, types: MessageTypes, synchronous: bool = False,

@@ -6,11 +6,18 @@ stamps (camera time) rather than wall-clock times; the node's diagnostics timer 
 ``vi3_ros.io.reader.iter_events`` accepts (ASL folder, ``vi3 make-bag`` folder, ROS 1 bag, rosbag2 directory or
 ``.mcap``), read once; bags may also carry ``sensor_msgs/CameraInfo`` on ``camera_info_topic`` and ``/tf_static``
 (with ``use_tf_static``), which come in the same stream and go to the Pipeline exactly as the node's callbacks do.
-Output: ``OUT.mcap`` (a single MCAP file) or, for any other name, a rosbag2 directory (``metadata.yaml`` + MCAP).
+Output: ``OUT.mcap`` (a single MCAP file) or, for any other name, a rosbag2 directory (``metadata.yaml`` + MCAP),
+written under a hidden temporary folder beside it and moved into place only when the replay finished and some clip
+produced a result: an output at ``OUT`` is always complete. An error, an interruption or a replay in which no clip
+produced a result keeps what was written as ``OUT.partial.mcap`` (``OUT.partial``), or nothing.
+
+Memory does not grow with the input: events are read, fed and released one at a time, and the summary keeps one
+latency per clip.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 import time
@@ -26,10 +33,22 @@ from tqdm import tqdm
 from msg_adapters.image import numpy_to_image
 from msg_adapters.imu import samples_to_imus
 from msg_adapters.types import MessageTypes, jazzy_types
+from vi3_core.anchor.options import MODES
 from vi3_core.dataset.asl import find_mav0
-from vi3_core.errors import DataError
+from vi3_core.errors import DataError, Vi3Error
 from vi3_core.types import ImuSamples
-from vi3_ros.io.reader import CameraInfoEvent, Event, ImageEvent, ImuEvent, find_calib, iter_events, resolve_input
+from vi3_ros.io.reader import (
+    CameraInfoEvent,
+    DropEvent,
+    Event,
+    ImageEvent,
+    ImuEvent,
+    TopicRequest,
+    find_calib,
+    iter_events,
+    resolve_input,
+)
+from vi3_ros.io.topics import IMAGE_TRANSPORTS
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import OUTPUTS, ClipReport, Pipeline, make_pipeline
 
@@ -39,20 +58,57 @@ def topic_name(topic: str, node: str = NODE_NAME) -> str:
     return f"/{node}/{topic[2:]}" if topic.startswith("~/") else topic
 
 
-class McapSink:
-    """OutputSink writing CDR messages of the rosbags Jazzy typestore into a rosbag2 MCAP (``path``: a
-    directory, or a ``.mcap`` file moved out of a temporary rosbag2 directory on ``close``)."""
+def partial_path(path: Path) -> Path:
+    """Where an interrupted or failed replay keeps what it wrote: ``OUT.partial.mcap`` for ``OUT.mcap``,
+    ``OUT.partial`` for a rosbag2 directory ``OUT``."""
+    return path.with_name(f"{path.stem}.partial.mcap") if path.suffix == ".mcap" else \
+        path.with_name(f"{path.name}.partial")
 
-    def __init__(self, path: str | Path, *, types: MessageTypes) -> None:
+
+def check_output(path: Path, *, force: bool) -> None:
+    """DataError unless ``path`` can be written: its folder exists, and it does not exist yet (``force``: it is
+    an MCAP file or a rosbag2 directory, which will be replaced)."""
+    folder = path.parent
+    if not folder.is_dir():
+        raise DataError(f"replay output {path}: folder {folder} does not exist" if not folder.exists() else
+                        f"replay output {path}: {folder} is not a folder")
+    if path.exists() or path.is_symlink():
+        if not force:
+            raise DataError(f"replay output {path} already exists; choose a new name, delete it or pass --force")
+        if not (path.is_file() and path.suffix == ".mcap") and not (path / "metadata.yaml").is_file():
+            raise DataError(f"replay output {path} exists and is not an MCAP file or a rosbag2 directory; --force "
+                            "replaces only those")
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+class McapSink:
+    """OutputSink writing CDR messages of the rosbags Jazzy typestore into a rosbag2 MCAP under a hidden temporary
+    folder beside ``path`` (an ``OUT.mcap`` file, or a rosbag2 directory for any other name). ``commit`` moves the
+    result to ``path`` (replacing it with ``force``); ``abandon`` keeps what was written at ``partial_path(path)``,
+    or nothing when nothing was written. Either way the temporary folder is removed."""
+
+    def __init__(self, path: str | Path, *, types: MessageTypes, force: bool = False) -> None:
         self.path = Path(path)
-        if self.path.exists():
-            raise DataError(f"replay output {self.path} already exists; choose a new name or delete it")
+        check_output(self.path, force=force)
         self.types = types
-        self._single = self.path.suffix == ".mcap"
-        self._tmp = Path(tempfile.mkdtemp(prefix=".vi3-replay-", dir=self.path.parent)) if self._single else None
-        self._bagdir = self._tmp / "bag" if self._tmp else self.path
-        self._writer = Writer(self._bagdir, version=9, storage_plugin=StoragePlugin.MCAP)
-        self._writer.open()
+        try:
+            self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.vi3-replay-", dir=self.path.parent))
+        except OSError as err:
+            raise DataError(f"replay output {self.path}: cannot write into {self.path.parent} "
+                            f"({err.strerror})") from None
+        self._bagdir = self._tmp / "bag"
+        try:
+            self._writer = Writer(self._bagdir, version=9, storage_plugin=StoragePlugin.MCAP)
+            self._writer.open()
+        except Exception:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
         self._connections: dict[str, Any] = {}
         self.counts: Counter[str] = Counter()
 
@@ -68,19 +124,65 @@ class McapSink:
         self._writer.write(conn, int(stamp_ns), self.types.typestore.serialize_cdr(msg, msgtype))
         self.counts[topic] += 1
 
-    def close(self) -> None:
-        self._writer.close()
-        if self._tmp is not None:
-            (mcap,) = self._bagdir.glob("*.mcap")
-            shutil.move(mcap, self.path)
+    def _result(self) -> Path:
+        """The written output inside the temporary folder: its MCAP file (``OUT.mcap``) or the rosbag2 folder."""
+        return next(self._bagdir.glob("*.mcap")) if self.path.suffix == ".mcap" else self._bagdir
+
+    def commit(self) -> Path:
+        """Close the bag and move it to ``path``; OSError (e.g. a full disk) leaves nothing behind."""
+        try:
+            self._writer.close()
+            _remove(self.path)
+            os.replace(self._result(), self.path)
+        finally:
             shutil.rmtree(self._tmp, ignore_errors=True)
+        return self.path
+
+    def abandon(self) -> Path | None:
+        """Keep what was written as ``partial_path(path)`` (replacing an older one) and return it; None when
+        nothing was written or it cannot be closed into a readable bag."""
+        kept = None
+        try:
+            self._writer.close()
+            if sum(self.counts.values()):
+                kept = partial_path(self.path)
+                _remove(kept)
+                os.replace(self._result(), kept)
+        except Exception:  # already failing (full disk, interrupted): keep nothing rather than a broken file
+            kept = None
+        finally:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+        return kept
+
+
+class ReplayAborted(Vi3Error):
+    """A replay that could not finish: the message says why and what was kept (``partial``: the path, or None)."""
+
+    def __init__(self, message: str, partial: Path | None) -> None:
+        super().__init__(message)
+        self.partial = partial
+
+
+class ReplayInterrupted(KeyboardInterrupt):
+    """A replay stopped by SIGINT (or SIGTERM, which the command turns into this); ``partial`` as ReplayAborted."""
+
+    def __init__(self, partial: Path | None) -> None:
+        super().__init__(partial)
+        self.partial = partial
+
+
+def kept_text(partial: Path | None) -> str:
+    """What an unfinished replay left behind, as a sentence."""
+    return f"kept what was produced in {partial} (incomplete)" if partial is not None else "nothing was written"
 
 
 @dataclass
 class ReplaySummary:
     """clips: clips the buffer completed; outcomes: final result per clip (init/cond/ttr/none/skipped:<reason>);
-    drops: buffer drops by reason; latencies_ms: processing time per processed clip; wall_s: replay wall time;
-    (backbone loading excluded); bag_s: span of the input's stamps; written: messages per output topic."""
+    drops: dropped input messages and clips by reason; latencies_ms: processing time per processed clip; wall_s:
+    replay wall time (backbone loading excluded); bag_s: span of the input's stamps; frames: camera frames read
+    (dropped ones included); written: messages per output topic; output: where they are (``--output``, or the
+    partial output when no clip produced a result)."""
 
     clips: int = 0
     outcomes: Counter = field(default_factory=Counter)
@@ -88,8 +190,9 @@ class ReplaySummary:
     latencies_ms: list[float] = field(default_factory=list)
     wall_s: float = 0.0
     bag_s: float = 0.0
+    frames: int = 0
     written: Counter = field(default_factory=Counter)
-    reports: list[ClipReport] = field(default_factory=list)
+    output: Path | None = None
 
     @property
     def realtime_factor(self) -> float:
@@ -99,11 +202,31 @@ class ReplaySummary:
     def median_latency_ms(self) -> float:
         return float(np.median(self.latencies_ms)) if self.latencies_ms else float("nan")
 
+    @property
+    def results(self) -> int:
+        """Clips that produced metric output (result init, cond or ttr)."""
+        return sum(n for k, n in self.outcomes.items() if k in MODES)
+
+    def why_nothing(self) -> str:
+        """Why no clip produced a result (for a summary line), from the frames, drops and outcomes."""
+        if self.frames == 0:
+            return "the input has no camera frames"
+        drops = _counts(self.drops)
+        if self.clips == 0:
+            return f"no clip was completed from {self.frames} frames (drops: {drops or 'none'})"
+        return f"every clip failed: outcomes {_counts(self.outcomes)} (drops: {drops or 'none'})"
+
     def as_dict(self) -> dict[str, Any]:
-        return {"clips": self.clips, "outcomes": dict(sorted(self.outcomes.items())),
-                "drops": dict(sorted(self.drops.items())), "median_latency_ms": round(self.median_latency_ms, 1),
-                "wall_s": round(self.wall_s, 3), "bag_s": round(self.bag_s, 3),
-                "realtime_factor": round(self.realtime_factor, 3), "written": dict(sorted(self.written.items()))}
+        """JSON-ready: a value that does not exist (no latency, no wall time) is None."""
+        def num(x: float, digits: int) -> float | None:
+            return round(x, digits) if np.isfinite(x) else None
+
+        return {"clips": self.clips, "results": self.results, "frames": self.frames,
+                "outcomes": dict(sorted(self.outcomes.items())), "drops": dict(sorted(self.drops.items())),
+                "median_latency_ms": num(self.median_latency_ms, 1), "wall_s": round(self.wall_s, 3),
+                "bag_s": round(self.bag_s, 3), "realtime_factor": num(self.realtime_factor, 3),
+                "written": dict(sorted(self.written.items())),
+                "output": None if self.output is None else str(self.output)}
 
     def text(self) -> str:
         d = self.as_dict()
@@ -112,6 +235,10 @@ class ReplaySummary:
                  f"realtime factor: {d['realtime_factor']}"]
         lines += [f"  {topic}: {n}" for topic, n in d["written"].items()]
         return "\n".join(lines)
+
+
+def _counts(counts: Counter) -> str:
+    return ", ".join(f"{k}:{n}" for k, n in sorted(counts.items()))
 
 
 def input_calib(path: Path) -> Path | None:
@@ -149,8 +276,13 @@ def _feed(pipeline: Pipeline, event: Event) -> None:
         pipeline.add_imu(event.t_ns, event.gyro, event.accel, event.orientation)
     elif isinstance(event, CameraInfoEvent):
         pipeline.add_camera_info(event.msg)
+    elif isinstance(event, DropEvent):
+        pipeline.drop_input(event.reason, event.t_ns, event.detail)
     else:
         pipeline.add_tf_static(event.msg)
+
+
+_COPY_ENCODINGS = {("u1", 2): "mono8", ("u1", 3): "rgb8", ("u2", 2): "mono16"}  # (dtype, ndim) -> encoding
 
 
 def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, values: dict[str, Any]) -> None:
@@ -159,7 +291,9 @@ def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, values: dict[str, 
     types = sink.types
     if isinstance(event, ImageEvent):
         img = event.image
-        enc = "mono8" if img.ndim == 2 else "rgb8"
+        enc = _COPY_ENCODINGS.get((img.dtype.str[1:], img.ndim))
+        if enc is None:  # a frame no Image encoding here describes (the pipeline drops it, naming it)
+            return
         msg = numpy_to_image(img, encoding=enc, stamp_ns=event.t_ns, frame_id=values["camera_frame"], types=types)
         sink.write(values["image_topic"], "sensor_msgs/msg/Image", msg, event.t_ns)
     else:
@@ -170,47 +304,89 @@ def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, values: dict[str, 
         sink.write(values["imu_topic"], "sensor_msgs/msg/Imu", msg, event.t_ns)
 
 
+def topic_requests(values: dict[str, Any], image_topic: str | None = None,
+                   imu_topic: str | None = None) -> tuple[TopicRequest, TopicRequest]:
+    """The image and IMU topics replay reads: ``image_topic`` / ``imu_topic`` (``--image-topic`` /
+    ``--imu-topic``) when given, else the parameters' topics when the recording has them, else the only topic of
+    the type (``vi3_ros.io.reader.choose_topics``); images of the type ``image_transport`` allows."""
+    return (TopicRequest(image_topic, values["image_topic"], IMAGE_TRANSPORTS[values["image_transport"]]),
+            TopicRequest(imu_topic, values["imu_topic"]))
+
+
 def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any], copy_inputs: bool = False,
-           progress: bool = True) -> ReplaySummary:
+           progress: bool = True, force: bool = False, image_topic: str | None = None,
+           imu_topic: str | None = None) -> ReplaySummary:
     """Replay ``input_path`` through the pipeline configured by parameter ``values``; write outputs to ``output``.
 
     Without ``calib_file`` the input's own calibration (``input_calib``) is used, unless CameraInfo or /tf_static
-    are to be read from the input. Raises DataError for an unreadable input or an existing output; bad data inside
-    the input becomes statuses."""
+    are to be read from the input. Topics: ``topic_requests``. The output is written beside ``output`` and moved
+    there only when the replay finishes and some clip produced a result; otherwise (the summary says why) it is
+    kept as ``partial_path(output)``. An input or output that cannot be used raises ReplayAborted (a DataError
+    before anything is written); an interruption raises ReplayInterrupted; either says what was kept. Bad data
+    inside the input becomes drops and statuses."""
     input_path, types = Path(input_path), jazzy_types()
+    resolve_input(input_path)  # a missing or unknown input fails before anything is written
     if not values["calib_file"] and not values["camera_info_topic"] and not values["use_tf_static"]:
         found = input_calib(input_path)
         values = {**values, "calib_file": str(found) if found is not None else ""}
+    image, imu = topic_requests(values, image_topic, imu_topic)
     summary = ReplaySummary()
-    sink = McapSink(output, types=types)
+    sink = McapSink(output, types=types, force=force)
+    try:
+        pipeline = make_pipeline(values, sink=sink, types=types, synchronous=True,
+                                 on_report=lambda r: _record_latency(summary, r))
+        start = time.perf_counter()  # model loading is not part of the replay's speed
+        _run(pipeline, sink, iter_events(input_path, image=image, imu=imu,
+                                         camera_info_topic=values["camera_info_topic"],
+                                         tf_static=values["use_tf_static"]),
+             summary, values, copy_inputs=copy_inputs, progress=progress, name=input_path.name)
+        summary.wall_s = time.perf_counter() - start
+        summary.clips = pipeline.buffer.clips
+        summary.drops = pipeline.drop_counts
+        summary.outcomes = Counter(pipeline.outcomes)
+        summary.written = Counter(sink.counts)
+    except KeyboardInterrupt:
+        raise ReplayInterrupted(sink.abandon()) from None
+    except (Vi3Error, OSError) as err:
+        partial = sink.abandon()
+        why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise ReplayAborted(f"{why}; {kept_text(partial)}", partial) from err
+    except BaseException:
+        sink.abandon()
+        raise
+    try:
+        summary.output = sink.commit() if summary.results else sink.abandon()
+    except OSError as err:
+        raise ReplayAborted(f"writing {output}: {err.strerror}; nothing was written", None) from err
+    return summary
+
+
+def _record_latency(summary: ReplaySummary, report: ClipReport) -> None:
+    if np.isfinite(report.latency_s):
+        summary.latencies_ms.append(report.latency_s * 1e3)
+
+
+def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, values: dict[str, Any], *,
+         copy_inputs: bool, progress: bool, name: str) -> None:
+    """Feed every input event to the pipeline, the diagnostics timer in bag time; close the pipeline and publish
+    the final counts. Sets ``summary.frames`` and ``summary.bag_s``."""
     t_first = t_last = None
     timer = _BagTimer(round(values["diagnostics_period"] * 1e9))
-    try:
-        pipeline = make_pipeline(values, sink=sink, types=types, synchronous=True, on_report=summary.reports.append)
-        start = time.perf_counter()  # model loading is not part of the replay's speed
-        events = iter_events(input_path, image_topic=values["image_topic"], imu_topic=values["imu_topic"],
-                             camera_info_topic=values["camera_info_topic"], tf_static=values["use_tf_static"])
-        with tqdm(desc=f"replay {input_path.name}", unit=" frames", disable=not progress, leave=False) as bar:
-            for event in events:
-                if isinstance(event, ImageEvent | ImuEvent):
-                    t_first = event.t_ns if t_first is None else t_first
-                    t_last = event.t_ns
-                    if copy_inputs:
-                        _copy_input(sink, event, values)
-                _feed(pipeline, event)
-                if t_last is not None and timer.due(t_last):
-                    pipeline.publish_diagnostics(t_last)
-                bar.update(isinstance(event, ImageEvent))
-        pipeline.close()
-        if t_last is not None:  # the final counts
-            pipeline.publish_diagnostics(t_last)
-    finally:
-        sink.close()
-    summary.wall_s = time.perf_counter() - start
+    with tqdm(desc=f"replay {name}", unit=" frames", disable=not progress, leave=False) as bar:
+        for event in events:
+            if isinstance(event, ImageEvent | ImuEvent):
+                t_first = event.t_ns if t_first is None else t_first
+                t_last = event.t_ns
+                if copy_inputs:
+                    _copy_input(sink, event, values)
+            _feed(pipeline, event)
+            if t_last is not None and timer.due(t_last):
+                pipeline.publish_diagnostics(t_last)
+            is_frame = isinstance(event, ImageEvent) or (isinstance(event, DropEvent) and
+                                                         event.reason.startswith("image"))
+            summary.frames += is_frame
+            bar.update(is_frame)
+    pipeline.close()
+    if t_last is not None:  # the final counts
+        pipeline.publish_diagnostics(t_last)
     summary.bag_s = 0.0 if t_first is None else (t_last - t_first) * 1e-9
-    summary.clips = pipeline.buffer.clips
-    summary.drops = Counter(pipeline.buffer.counts)
-    summary.outcomes = Counter(pipeline.outcomes)
-    summary.latencies_ms = [r.latency_s * 1e3 for r in summary.reports if np.isfinite(r.latency_s)]
-    summary.written = Counter(sink.counts)
-    return summary

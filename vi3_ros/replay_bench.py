@@ -3,12 +3,14 @@
 Without ``--input`` it generates (once, cached under ``.cache/bench`` of the working directory) a 20 s EuRoC-format
 sequence and converts it like a user would (ASL -> ROS 1 bag -> rosbag2 MCAP), then replays it in ``init`` mode
 with the chosen backbone. ``realtime_factor`` = bag seconds / replay wall seconds (backbone loading excluded), so
->= 1 means the pipeline keeps up with the recording while processing every clip.
+>= 1 means the pipeline keeps up with the recording while processing every clip. ``peak_rss_mb``: the process's
+peak resident memory (MB, ``getrusage``), which must not grow with the bag's length (``--seconds``).
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import tempfile
 from pathlib import Path
 
@@ -25,9 +27,9 @@ BENCH_SECONDS = 20.0
 CACHE = Path(".cache") / "bench"
 
 
-def _default_input() -> tuple[Path, Path]:
-    """(rosbag2 MCAP directory, calibration YAML) of the cached 20 s sequence."""
-    asl = cached_sequence(CACHE, seconds=BENCH_SECONDS, seed=0, with_depth=False)
+def _default_input(seconds: float) -> tuple[Path, Path]:
+    """(rosbag2 MCAP directory, calibration YAML) of the cached sequence of ``seconds``."""
+    asl = cached_sequence(CACHE, seconds=seconds, seed=0, with_depth=False)
     bag, mcap, calib = asl / "seq.bag", asl / "mcap", asl / "cam0_sensor.yaml"
     if not mcap.exists():
         if not bag.exists():
@@ -43,7 +45,7 @@ def bench_replay(args: argparse.Namespace) -> dict:
     if args.input:
         inp, calib = Path(args.input), None
     else:
-        inp, calib = _default_input()
+        inp, calib = _default_input(args.seconds or BENCH_SECONDS)
     values = resolve({"backbone": args.backbone, "device": args.device, "mode": "init",
                       **({"calib_file": str(calib)} if calib is not None else {})})
     runs = []
@@ -55,4 +57,4 @@ def bench_replay(args: argparse.Namespace) -> dict:
     return {"realtime_factor": round(float(np.median(rtf)), 3), "clips": best.clips,
             "median_latency_ms": round(best.median_latency_ms, 1), "bag_s": round(best.bag_s, 3),
             "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
-            "input": str(inp)}
+            "input": str(inp), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}

@@ -19,7 +19,8 @@ _EMPTY = object()
 
 
 class Worker:
-    """Latest-wins worker. Counters: ``submitted``, ``processed``, ``replaced``, ``errors`` (ints, read any time)."""
+    """Latest-wins worker. Counters: ``submitted``, ``processed``, ``replaced``, ``errors``, ``unreported`` (errors
+    whose ``on_error`` raised too) (ints, read any time)."""
 
     def __init__(self, handle: Callable[[Any], None], *, on_error: Callable[[Any, BaseException], None],
                  on_replaced: Callable[[Any], None] | None = None, synchronous: bool = False,
@@ -28,7 +29,7 @@ class Worker:
         self._on_error = on_error
         self._on_replaced = on_replaced
         self.synchronous = synchronous
-        self.submitted = self.processed = self.replaced = self.errors = 0
+        self.submitted = self.processed = self.replaced = self.errors = self.unreported = 0
         self._slot: Any = _EMPTY
         self._cond = threading.Condition()
         self._stopping = False
@@ -62,8 +63,14 @@ class Worker:
         with self._cond:
             return self._cond.wait_for(lambda: self._slot is _EMPTY and not self._busy, timeout)
 
+    @property
+    def alive(self) -> bool:
+        """Whether the thread is still running (a job outlived ``stop``'s timeout)."""
+        return self._thread is not None and self._thread.is_alive()
+
     def stop(self, timeout: float | None = 5.0) -> None:
-        """Finish the running job, discard a waiting one, and end the thread."""
+        """Discard a waiting job and end the thread once the running job is done, waiting for that at most
+        ``timeout`` s (None: as long as it takes); the thread is a daemon and does not hold up the process."""
         with self._cond:
             self._stopping = True
             self._slot = _EMPTY
@@ -76,7 +83,10 @@ class Worker:
             self._handle(job)
         except Exception as exc:  # the worker must survive any failure of one job
             self.errors += 1
-            self._on_error(job, exc)
+            try:
+                self._on_error(job, exc)
+            except Exception:  # reporting failed too (e.g. publishing after the node shut down): nowhere to report
+                self.unreported += 1
         finally:
             self.processed += 1
 

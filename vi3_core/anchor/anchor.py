@@ -25,8 +25,11 @@ def check_mode(backbone: Backbone, mode: str) -> None:
         raise ValueError(f"unknown anchoring mode {mode!r}; choose one of {', '.join(MODES)}")
     need = _REQUIRED.get(mode)
     if need and need not in backbone.capabilities:
+        from vi3_core.backbones import backbones_with  # the registry imports every adapter module: only here
+
         raise ModeNotSupported(f"backbone {backbone.name!r} cannot do mode {mode!r} (it lacks {need!r}; it "
-                               f"supports: {', '.join(sorted(backbone.capabilities)) or 'init only'})")
+                               f"supports: {', '.join(sorted(backbone.capabilities)) or 'init only'}); backbones "
+                               f"that can: {', '.join(backbones_with(need)) or 'none'}")
 
 
 def anchor(clip: Clip, backbone: Backbone, *, mode: str = "init", options: AnchorOptions | None = None,

@@ -23,6 +23,7 @@ be used leaves the sequence without depth and says why in ``Sequence.depth_gt`` 
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -70,7 +71,13 @@ def read_csv(path: Path, *, columns: int, first: str = "#timestamp") -> tuple[np
     if len(names) != columns or not names[0].startswith(first):
         raise DataError(f"{path}: header {header!r} is not EuRoC's: expected {columns} comma-separated columns "
                         f"starting with {first!r}")
-    rows = np.loadtxt(path, delimiter=",", skiprows=1, comments=None, dtype=str, ndmin=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # an empty file is no rows, said by the callers
+        try:
+            rows = np.loadtxt(path, delimiter=",", skiprows=1, comments=None, dtype=str, ndmin=2)
+        except ValueError as err:  # a short or long row: numpy names its row (counted from 1 after the header)
+            raise DataError(f"{path}: {str(err).split(';')[0]} (rows counted after the header; the header has "
+                            f"{columns} columns)") from None
     if rows.size and rows.shape[1] != columns:
         raise DataError(f"{path}: rows have {rows.shape[1]} columns, the header {columns}")
     rows = np.char.strip(rows.reshape(-1, columns))

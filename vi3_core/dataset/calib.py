@@ -65,6 +65,37 @@ class CameraCalib:
         expected = {"radtan": 4, "equidistant": 4, "none": 0}[self.dist_model]
         if len(self.dist) != expected:
             raise CalibrationError(f"{self.dist_model} distortion needs {expected} coefficients, got {len(self.dist)}")
+        problem = self._problem()
+        if problem is not None:
+            raise CalibrationError(problem)
+
+    def _problem(self) -> str | None:
+        """What makes this calibration unusable (naming the field and its value), or None."""
+        w, h = self.size
+        if not (isinstance(w, int | np.integer) and isinstance(h, int | np.integer) and w > 0 and h > 0):
+            return f"resolution {list(self.size)} is not two positive integers [width, height]"
+        fu, fv, cu, cv = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        for name, value in (("fu", fu), ("fv", fv)):
+            if not (np.isfinite(value) and value > 0):
+                return f"focal length {name} = {value:g} (intrinsics) must be finite and > 0"
+        for name, value, limit in (("cu", cu, w), ("cv", cv, h)):
+            if not (np.isfinite(value) and 0 <= value <= limit):
+                return f"principal point {name} = {value:g} (intrinsics) lies outside the image [0, {limit}]"
+        if not np.all(np.isfinite(self.dist)):
+            return f"distortion coefficients {np.asarray(self.dist).tolist()} are not all finite"
+        if not np.all(np.isfinite(self.T_BC)):
+            return "T_BC (camera pose in the body frame) has NaN/Inf entries"
+        if self.rate_hz is not None and not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
+            return f"rate_hz = {self.rate_hz:g} must be finite and > 0"
+        return None
+
+    def check_frame(self, image: np.ndarray) -> str | None:
+        """Why a raw frame [H,W] or [H,W,C] cannot be undistorted with this calibration (its size is not the
+        calibrated resolution), or None."""
+        h, w = np.shape(image)[:2] if np.ndim(image) >= 2 else (0, 0)
+        if (w, h) != tuple(self.size):
+            return f"frame is {w}x{h} but the calibration is for {self.size[0]}x{self.size[1]}"
+        return None
 
     def undistorter(self) -> Undistorter:
         """Built once per calibration (cached): maps from the undistorted pinhole image to the raw image."""
@@ -124,28 +155,51 @@ def _build(entry: dict, *, intr_key: str, dist_key: str, T_BC: np.ndarray, path:
             raise CalibrationError(f"{path}: missing {key!r}")
     if entry.get("camera_model", "pinhole") != "pinhole":
         raise CalibrationError(f"{path}: camera_model {entry['camera_model']!r} is not supported (pinhole only)")
-    fu, fv, cu, cv = (float(x) for x in entry[intr_key])
+    fu, fv, cu, cv = _numbers(entry[intr_key], intr_key, 4, float, path)
     model = _EUROC_MODELS.get(str(entry.get("distortion_model", "none")))
     if model is None:
         raise CalibrationError(f"{path}: distortion_model {entry['distortion_model']!r} is not one of "
                                f"{sorted(_EUROC_MODELS)}")
     dist = np.asarray(entry.get(dist_key, []) or [], dtype=np.float64)
-    w, h = (int(x) for x in entry["resolution"])
+    w, h = _numbers(entry["resolution"], "resolution", 2, int, path)
     rate = entry.get("rate_hz")
     K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
     try:
         return CameraCalib(K, model, dist, (w, h), T_BC, None if rate is None else float(rate))
-    except CalibrationError as err:
+    except (CalibrationError, TypeError, ValueError) as err:
         raise CalibrationError(f"{path}: {err}") from None
+
+
+def _numbers(value, key: str, count: int, kind: type, path: Path) -> list:
+    """``count`` numbers of type ``kind`` from the list ``value`` of field ``key``; CalibrationError naming it."""
+    try:
+        out = [kind(x) for x in value]
+        if kind is int and any(float(x) != int(x) for x in value):
+            raise ValueError
+    except (TypeError, ValueError):
+        out = []
+    if len(out) != count:
+        raise CalibrationError(f"{path}: {key!r} must be a list of {count} {kind.__name__} numbers, got {value!r}")
+    return out
 
 
 def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
     """Read an EuRoC ``sensor.yaml`` or a Kalibr camchain(-imucam) YAML (``camera`` picks the Kalibr entry)."""
     path = Path(path)
+    if path.is_dir():
+        raise CalibrationError(f"{path}: is a directory, not a calibration file (EuRoC sensor.yaml or Kalibr "
+                               "camchain YAML)")
     if not path.is_file():
         raise CalibrationError(f"{path}: calibration file does not exist")
+    try:
+        raw = path.read_text()
+    except UnicodeDecodeError:
+        raise CalibrationError(f"{path}: not a text file (binary content); expected an EuRoC sensor.yaml or a "
+                               "Kalibr camchain YAML") from None
+    except OSError as err:
+        raise CalibrationError(f"{path}: cannot read it ({err.strerror})") from None
     # EuRoC ships some files with OpenCV's "%YAML:1.0" directive, which PyYAML rejects.
-    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("%YAML"))
+    text = "\n".join(line for line in raw.splitlines() if not line.startswith("%YAML"))
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as err:

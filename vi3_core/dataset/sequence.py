@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from vi3_core import so3
 from vi3_core.dataset.calib import CameraCalib
-from vi3_core.errors import DataError
+from vi3_core.errors import CalibrationError, DataError
 from vi3_core.types import Clip, GroundTruth, ImuSamples
 
 G_W = np.array([0.0, 0.0, -9.81])
@@ -129,7 +129,8 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
         raise DataError(f"clip indices {idx.tolist()} out of range for {len(seq)} frames of {seq.name!r}")
     stamps = seq.stamps[idx]
     und = seq.calib.undistorter()
-    images = np.stack([und.apply(seq.image(i)) for i in idx]) if with_images else np.zeros((len(idx), 0, 0), np.uint8)
+    images = (np.stack([und.apply(_fitting_frame(seq, i)) for i in idx]) if with_images
+              else np.zeros((len(idx), 0, 0), np.uint8))
     imu = seq.imu.window(stamps[0], stamps[-1], margin=1)
     if len(imu) == 0 or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
         raise DataError(f"IMU of {seq.name!r} does not cover the clip [{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
@@ -145,6 +146,15 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
     history = seq.imu.window(stamps[0] - history_s, stamps[-1], margin=1)
     return Clip(stamps=stamps, images=images, K=und.K.copy(), T_BC=seq.calib.T_BC.copy(), imu=imu, gt=gt,
                 imu_history=history)
+
+
+def _fitting_frame(seq: Sequence, i: int) -> np.ndarray:
+    """Raw frame ``i``, or CalibrationError naming it when it does not fit the calibration (never stretched)."""
+    image = seq.image(i)
+    problem = seq.calib.check_frame(image)
+    if problem is not None:
+        raise CalibrationError(f"sequence {seq.name!r}, frame {i} (t = {seq.stamps[i]:.6f} s): {problem}")
+    return image
 
 
 def sample_clips(n_total: int, *, n: int = 8, stride: int = 2, mode: str = "paper",

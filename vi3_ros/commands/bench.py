@@ -30,6 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--backbone", default="classical", help="backbone for backbone/ttr/replay benchmarks")
     p.add_argument("--device", default="cpu")
     p.add_argument("--input", default=None, help="input sequence for the replay benchmark")
+    p.add_argument("--seconds", type=float, default=None, help="length of the generated replay input (default 20)")
     p.set_defaults(func=run)
 
 

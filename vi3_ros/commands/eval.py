@@ -32,6 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "each reported, then pooled")
     p.add_argument("--calib", default=None, metavar="YAML",
                    help="camera calibration (EuRoC sensor.yaml or Kalibr camchain) for bags that carry none")
+    p.add_argument("--image-topic", default=None, help="camera topic of a bag (sensor_msgs/Image or CompressedImage; "
+                   "default: /cam0/image_raw, else the only image topic)")
+    p.add_argument("--imu-topic", default=None, help="IMU topic of a bag (default: /imu0, else the only "
+                   "sensor_msgs/Imu topic)")
     p.add_argument("--backbone", default="classical",
                    help="3DFM backbone (default: the embedded 'classical'); 'gt' is the ground-truth pose instrument "
                         "(see --gt-noise), an evaluation tool, never a backbone for the node")
@@ -51,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--n", type=int, default=8, help="frames per clip (default 8)")
     p.add_argument("--stride", type=int, default=2, help="frame stride within a clip (default 2)")
     p.add_argument("--hop", type=int, default=None, help="frames between sliding clips (default n*stride)")
-    p.add_argument("--max-clips", type=int, default=None, help="evaluate at most this many clips (evenly spread)")
+    p.add_argument("--max-clips", type=_positive, default=None,
+                   help="evaluate at most this many clips (evenly spread; >= 1)")
     p.add_argument("--steps", type=int, default=None, help="TTR steps (default: the paper's 160)")
     p.add_argument("--ablate", action="store_true",
                    help="initialisation ablations: TLS vs OLS, all-pairs vs first-pair v1, gravity consensus on/off "
@@ -93,7 +98,7 @@ def _chained(args: argparse.Namespace) -> bool:
 def _open(args: argparse.Namespace, path: str):
     from vi3_ros.io.reader import open_sequence
 
-    return open_sequence(path, calib=args.calib)
+    return open_sequence(path, calib=args.calib, image_topic=args.image_topic, imu_topic=args.imu_topic)
 
 
 def unique_names(names: list[str], reserved: tuple[str, ...] = RESERVED_NAMES) -> list[str]:
@@ -159,6 +164,13 @@ def output_paths(args: argparse.Namespace, names: list[str]) -> dict:
     if clash:
         raise OSError(f"two outputs of this run would be the same path: {', '.join(sorted(clash))}")
     return {"plots": plots, "sigma": sigma, "tum": tum, "json": json_out}
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
+import signal
 import sys
 
 from vi3_core.errors import Vi3Error
@@ -21,6 +21,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", help="torch device (parameter device)")
     p.add_argument("--params-file", help="ROS 2 parameter YAML, e.g. config/euroc.yaml")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any node parameter")
+    p.add_argument("--image-topic", help="camera topic to read (sensor_msgs/Image or CompressedImage; default: the "
+                   "parameter image_topic when the input has it, else the only image topic)")
+    p.add_argument("--imu-topic", help="IMU topic to read (default: the parameter imu_topic when the input has it, "
+                   "else the only sensor_msgs/Imu topic)")
+    p.add_argument("--force", action="store_true", help="replace an existing OUT (an MCAP file or rosbag2 folder)")
     p.add_argument("--copy-inputs", action="store_true", help="also write the input images and IMU")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -39,13 +44,37 @@ def values_from_args(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vi3_ros.replay import replay
+    """Exit status: 0 with a complete output; 1 when no clip produced a result (the statuses saying why are kept as
+    OUT.partial.mcap); 2 for an input, output or configuration that cannot be used; 128 + signal number when
+    interrupted (SIGINT, SIGTERM). Every unfinished replay says on stderr what it kept."""
+    from vi3_core.eval.report import to_json
+    from vi3_ros.replay import ReplayInterrupted, kept_text, replay
 
+    previous = signal.signal(signal.SIGTERM, _terminate)  # SIGTERM ends like Ctrl-C: the partial output is kept
     try:
         summary = replay(args.input, args.output, values=values_from_args(args), copy_inputs=args.copy_inputs,
-                         progress=not args.no_progress and sys.stderr.isatty())
+                         progress=not args.no_progress and sys.stderr.isatty(), force=args.force,
+                         image_topic=args.image_topic, imu_topic=args.imu_topic)
+    except ReplayInterrupted as exc:
+        signum = _received[-1] if _received else signal.SIGINT
+        print(f"vi3 replay: interrupted by {signal.Signals(signum).name}; {kept_text(exc.partial)}", file=sys.stderr)
+        return 128 + signum
     except Vi3Error as exc:
         print(f"vi3 replay: {exc}", file=sys.stderr)
         return 2
-    print(json.dumps(summary.as_dict()) if args.json else f"wrote {args.output}\n{summary.text()}")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    print(to_json(summary.as_dict()) if args.json else f"wrote {summary.output}\n{summary.text()}")
+    if not summary.results:
+        print(f"vi3 replay: no clip produced a result: {summary.why_nothing()}; {kept_text(summary.output)}",
+              file=sys.stderr)
+        return 1
     return 0
+
+
+_received: list[int] = []
+
+
+def _terminate(signum: int, frame) -> None:
+    _received.append(signum)
+    raise KeyboardInterrupt

@@ -3,7 +3,13 @@
 
 Bags are read with rosbags (``AnyReader``; bare MCAP files through the ``mcap`` package and the rosbags Jazzy
 typestore's CDR deserialiser) and decoded with ``msg_adapters``. Topics default to EuRoC's (``/cam0/image_raw``,
-``/imu0``, ``/vicon/firefly_sbx/firefly_sbx``) or else the only topic of the right type.
+``/imu0``, ``/vicon/firefly_sbx/firefly_sbx``) or else the only topic of the right type (``choose_topics``: one
+rule for replay and eval). Camera frames may be ``sensor_msgs/Image`` or ``sensor_msgs/CompressedImage`` (JPEG/PNG):
+the image topic's type is read from the recording.
+
+``iter_events`` never stops at one bad message: a message that cannot be decoded (or an ASL frame whose PNG is
+missing or corrupt) becomes a ``DropEvent`` naming it, as the node drops such a message and goes on; an input it
+cannot read at all (not a bag, truncated, no image topic) raises DataError.
 
 Bags carry no calibration (EuRoC's carry no CameraInfo): pass ``calib=`` (a ``CameraCalib`` or a path to a
 Kalibr camchain-imucam / EuRoC sensor.yaml), or leave a ``*camchain-imucam*.yaml`` next to the bag or inside
@@ -17,6 +23,7 @@ output folder opens as its rosbag2 MCAP. Ground truth from a bag is poses only: 
 from __future__ import annotations
 
 import functools
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters.image import image_to_numpy
+from msg_adapters.errors import drop_reason
+from msg_adapters.image import camera_frame
 from msg_adapters.imu import imu_to_sample
 from msg_adapters.poses import transform_to_T
 from msg_adapters.stamps import stamp_to_ns
@@ -39,7 +47,8 @@ from vi3_ros.io import topics
 
 @dataclass(frozen=True)
 class ImageEvent:
-    """One camera frame: stamp (float64 s and int ns) and the raw image [H,W] (mono) or [H,W,3] uint8."""
+    """One camera frame: stamp (float64 s and int ns) and the raw image [H,W] (mono) or [H,W,3] RGB, as
+    recorded (uint8 for 8-bit encodings; the pipeline drops any other dtype, naming it)."""
 
     t: float
     t_ns: int
@@ -72,7 +81,18 @@ class TfStaticEvent:
     msg: Any
 
 
-Event = ImageEvent | ImuEvent | CameraInfoEvent | TfStaticEvent
+@dataclass(frozen=True)
+class DropEvent:
+    """A message that could not be decoded, dropped: ``reason`` (``image_malformed``, ``image_unsupported``,
+    ``imu_malformed``, ``camera_info_malformed``, ``tf_static_malformed``), its stamp (int ns; None when even the
+    header is unreadable) and ``detail``, a sentence naming the topic or file and the problem."""
+
+    reason: str
+    t_ns: int | None
+    detail: str
+
+
+Event = ImageEvent | ImuEvent | CameraInfoEvent | TfStaticEvent | DropEvent
 
 
 @dataclass(frozen=True)
@@ -81,13 +101,26 @@ class _GtEvent:
     T_WB: np.ndarray
 
 
-#: role -> (message type, preferred topic); image and IMU are required, the others read where present.
-_ROLES: dict[str, tuple[str, str | None]] = {
-    "image": (topics.IMAGE_TYPE, topics.IMAGE_TOPIC), "imu": (topics.IMU_TYPE, topics.IMU_TOPIC),
-    "gt": (topics.GT_TYPE, topics.GT_TOPIC), "camera_info": (topics.CAMERA_INFO_TYPE, None),
-    "tf_static": (topics.TF_TYPE, topics.TF_STATIC_TOPIC)}
+#: role -> (accepted message types, preferred topic); image and IMU are required, the others read where present.
+_ROLES: dict[str, tuple[tuple[str, ...], str | None]] = {
+    "image": (topics.IMAGE_TYPES, topics.IMAGE_TOPIC), "imu": ((topics.IMU_TYPE,), topics.IMU_TOPIC),
+    "gt": ((topics.GT_TYPE,), topics.GT_TOPIC), "camera_info": ((topics.CAMERA_INFO_TYPE,), None),
+    "tf_static": ((topics.TF_TYPE,), topics.TF_STATIC_TOPIC)}
 _REQUIRED = ("image", "imu")
 _CALIBRATION_ROLES = ("camera_info", "tf_static")  # named topics, skipped when the recording lacks them
+#: Errors of rosbags' deserialisers on a message whose bytes do not fit its type.
+_UNDECODABLE = (ValueError, IndexError, KeyError, TypeError, struct.error)
+
+
+@dataclass(frozen=True)
+class TopicRequest:
+    """Which topic to read for a role: ``explicit`` (a command-line option: must exist with an accepted type), else
+    ``preferred`` when the recording has it, else the only topic of an accepted type; ``types`` overrides the
+    role's accepted types (e.g. only CompressedImage)."""
+
+    explicit: str | None = None
+    preferred: str | None = None
+    types: tuple[str, ...] | None = None
 
 
 # ------------------------------------------------------------------------------------------- bag access
@@ -113,39 +146,44 @@ def resolve_input(path) -> tuple[Path, str]:
     raise DataError(f"{path}: not an ASL folder, ROS 1 .bag, rosbag2 directory, .mcap file or make-bag folder")
 
 
-def _pick(path: Path, available: dict[str, str], msgtype: str, preferred: str | None, explicit: str | None,
-          *, required: bool) -> str | None:
-    """The topic to read for ``msgtype``: ``explicit``, else ``preferred`` when present, else the only candidate."""
-    if explicit is not None:
-        if available.get(explicit) != msgtype:
-            raise DataError(f"{path}: topic {explicit!r} of type {msgtype} not found; topics: {available}")
-        return explicit
-    cands = sorted(t for t, ty in available.items() if ty == msgtype)
-    if preferred in cands:
-        return preferred
-    if len(cands) == 1:
-        return cands[0]
-    if required:
-        what = "no" if not cands else f"several ({cands}; choose one with a topic option)"
-        raise DataError(f"{path}: {what} {msgtype} topic; topics: {available}")
-    return None
+def _option(role: str) -> str:
+    """The command-line option of ``vi3 replay`` and ``vi3 eval`` that names the topic of ``role``."""
+    return f"--{role.replace('_', '-')}-topic"
 
 
-def _choose(path: Path, available: dict[str, str], want: dict[str, str | None]) -> dict[str, str]:
-    """topic -> role for the roles in ``want`` (role -> explicit topic or None), given the recording's topics
-    (name -> ROS 2 type name). A calibration role whose topic the recording lacks is left out."""
+def choose_topics(path: Path, available: dict[str, str], want: dict[str, TopicRequest]) -> dict[str, str]:
+    """topic -> role for the roles in ``want``, given the recording's topics (name -> ROS 2 type name); the one
+    topic rule of replay and eval (see ``TopicRequest``). A calibration role whose topic the recording lacks is
+    left out; a required role without a single candidate is a DataError listing the candidates."""
     chosen = {}
-    for role, explicit in want.items():
-        if role in _CALIBRATION_ROLES and explicit not in available:
+    for role, req in want.items():
+        types, default = _ROLES[role]
+        types = req.types or types
+        if role in _CALIBRATION_ROLES and req.explicit not in available:
             continue
-        topic = _pick(path, available, *_ROLES[role], explicit, required=role in _REQUIRED)
+        cands = sorted(t for t, ty in available.items() if ty in types)
+        listing = ", ".join(f"{t} ({available[t]})" for t in cands) or "none"
+        if req.explicit is not None:
+            if req.explicit not in cands:
+                found = f"has type {available[req.explicit]}" if req.explicit in available else "is not in it"
+                raise DataError(f"{path}: topic {req.explicit!r} {found}; {role} topics ({' or '.join(types)}): "
+                                f"{listing}")
+            topic = req.explicit
+        else:
+            preferred = req.preferred if req.preferred is not None else default
+            topic = preferred if preferred in cands else cands[0] if len(cands) == 1 else None
+        if topic is None and role in _REQUIRED:
+            what = f"several {role} topics: {listing}; choose one with {_option(role)}" if cands else \
+                f"no {role} topic ({' or '.join(types)}); topics: {available}"
+            raise DataError(f"{path}: {what}")
         if topic is not None:
             chosen[topic] = role
     return chosen
 
 
-def _bag_messages(path: Path, kind: str, want: dict[str, str | None]) -> Iterator[tuple[str, Any]]:
-    """Yield (role, msg) in record order for the roles in ``want`` (role -> explicit topic or None)."""
+def _bag_messages(path: Path, kind: str, want: dict[str, TopicRequest]) -> Iterator[tuple[str, str, Any]]:
+    """Yield (role, topic, msg) in record order for the roles in ``want``; msg is a DataError for a message whose
+    bytes cannot be deserialised."""
     if kind == "mcap":
         yield from _mcap_messages(path, want)
         return
@@ -153,52 +191,74 @@ def _bag_messages(path: Path, kind: str, want: dict[str, str | None]) -> Iterato
 
     try:
         with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
-            chosen = _choose(path, {c.topic: full_name(c.msgtype) for c in reader.connections}, want)
+            chosen = choose_topics(path, {c.topic: full_name(c.msgtype) for c in reader.connections}, want)
             conns = [c for c in reader.connections if c.topic in chosen]
             for conn, _, raw in reader.messages(connections=conns):
-                yield chosen[conn.topic], reader.deserialize(raw, conn.msgtype)
+                yield chosen[conn.topic], conn.topic, _deserialize(reader.deserialize, raw, conn.msgtype, conn.topic)
     except AnyReaderError as err:
         raise DataError(f"{path}: cannot read the bag (truncated, unindexed or not a bag?): {err}") from err
+    except DataError:
+        raise
+    except (_UNDECODABLE + (EOFError, OSError, UnicodeDecodeError)) as err:  # rosbags on bytes that are no bag
+        raise DataError(f"{path}: cannot read the bag (not a bag, or corrupt): {type(err).__name__}: {err}") \
+            from err
 
 
-def _mcap_messages(path: Path, want: dict[str, str | None]) -> Iterator[tuple[str, Any]]:
+def _deserialize(fn, raw, msgtype: str, topic: str) -> Any:
+    try:
+        return fn(raw, msgtype)
+    except _UNDECODABLE as err:
+        return DataError(f"{topic}: a {msgtype} message of {len(raw)} bytes cannot be deserialised "
+                         f"({type(err).__name__}: {err})")
+
+
+def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[str, str, Any]]:
     """A bare .mcap file (no metadata.yaml): the mcap package reads it, the Jazzy typestore decodes CDR."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     store = jazzy_types().typestore
+    if path.stat().st_size == 0:
+        raise DataError(f"{path}: cannot read the MCAP file: it is empty (0 bytes)")
     try:
         with path.open("rb") as f:
             reader = make_reader(f)
             summary = reader.get_summary()
             if summary is None:
                 raise DataError(f"{path}: MCAP file has no summary section (truncated or unindexed)")
-            chosen = _choose(path, {ch.topic: summary.schemas[ch.schema_id].name
-                                    for ch in summary.channels.values()}, want)
+            chosen = choose_topics(path, {ch.topic: summary.schemas[ch.schema_id].name
+                                          for ch in summary.channels.values()}, want)
             for schema, channel, message in reader.iter_messages(topics=list(chosen), log_time_order=True):
-                yield chosen[channel.topic], store.deserialize_cdr(message.data, schema.name)
-    except McapError as err:
-        raise DataError(f"{path}: cannot read the MCAP file: {err}") from err
+                yield chosen[channel.topic], channel.topic, _deserialize(store.deserialize_cdr, message.data,
+                                                                         schema.name, channel.topic)
+    except (McapError, EOFError, struct.error) as err:
+        raise DataError(f"{path}: cannot read the MCAP file: {str(err) or type(err).__name__}") from err
 
 
-def _decode(role: str, msg: Any) -> Event | _GtEvent:
-    if role == "camera_info":
-        return CameraInfoEvent(msg)
-    if role == "tf_static":
-        return TfStaticEvent(msg)
-    ns = stamp_to_ns(msg.header.stamp)
-    if role == "image":
-        image = image_to_numpy(msg)
-        return ImageEvent(ns * 1e-9, ns, image[..., 0] if image.ndim == 3 and image.shape[2] == 1 else image)
-    if role == "imu":
-        s = imu_to_sample(msg)
-        return ImuEvent(ns * 1e-9, ns, s.gyro, s.accel, s.orientation)
-    return _GtEvent(ns, transform_to_T(msg.transform))
+def _decode(role: str, topic: str, msg: Any) -> Event | _GtEvent:
+    """The event of one message; a DropEvent naming the topic when it cannot be decoded."""
+    ns = None
+    try:
+        if isinstance(msg, DataError):
+            raise msg
+        if role == "camera_info":
+            return CameraInfoEvent(msg)
+        if role == "tf_static":
+            return TfStaticEvent(msg)
+        ns = stamp_to_ns(msg.header.stamp)
+        if role == "image":
+            return ImageEvent(ns * 1e-9, ns, camera_frame(msg))
+        if role == "imu":
+            s = imu_to_sample(msg)
+            return ImuEvent(ns * 1e-9, ns, s.gyro, s.accel, s.orientation)
+        return _GtEvent(ns, transform_to_T(msg.transform))
+    except DataError as err:
+        return DropEvent(drop_reason(role, err), ns, f"{topic}: {err}")
 
 
-def _events(path: Path, kind: str, want: dict[str, str | None]) -> Iterator[Event | _GtEvent]:
-    for role, msg in _bag_messages(path, kind, want):
-        yield _decode(role, msg)
+def _events(path: Path, kind: str, want: dict[str, TopicRequest]) -> Iterator[Event | _GtEvent]:
+    for role, topic, msg in _bag_messages(path, kind, want):
+        yield _decode(role, topic, msg)
 
 
 # ------------------------------------------------------------------------------------------- public API
@@ -213,28 +273,32 @@ def merge_by_time(*stamps_ns: np.ndarray) -> Iterator[tuple[int, int, int]]:
     return zip(ns[order].tolist(), stream[order].tolist(), index[order].tolist())
 
 
-def iter_events(path, *, image_topic: str | None = None, imu_topic: str | None = None,
+def iter_events(path, *, image: TopicRequest = TopicRequest(), imu: TopicRequest = TopicRequest(),
                 camera_info_topic: str | None = None, tf_static: bool = False) -> Iterator[Event]:
-    """Camera frames and IMU samples of any supported recording in record order (images decoded lazily).
+    """Camera frames and IMU samples of any supported recording in record order (images decoded lazily), and a
+    ``DropEvent`` for each message that cannot be decoded.
 
-    With ``camera_info_topic`` the ``sensor_msgs/CameraInfo`` messages of that topic, with ``tf_static`` those of
-    ``/tf_static``, come in the same stream where the recording has them (an ASL folder has neither: its
-    calibration is ``cam0/sensor.yaml``)."""
+    ``image`` / ``imu`` choose the topics (``TopicRequest``). With ``camera_info_topic`` the
+    ``sensor_msgs/CameraInfo`` messages of that topic, with ``tf_static`` those of ``/tf_static``, come in the same
+    stream where the recording has them (an ASL folder has neither: its calibration is ``cam0/sensor.yaml``)."""
     path, kind = resolve_input(path)
     if kind != "asl":
-        want = {"image": image_topic, "imu": imu_topic}
+        want = {"image": image, "imu": imu}
         if camera_info_topic:
-            want["camera_info"] = camera_info_topic
+            want["camera_info"] = TopicRequest(explicit=camera_info_topic)
         if tf_static:
-            want["tf_static"] = topics.TF_STATIC_TOPIC
+            want["tf_static"] = TopicRequest(explicit=topics.TF_STATIC_TOPIC)
         yield from _events(path, kind, want)
         return
     seq = read_asl(path)
     for ns, stream, i in merge_by_time(seq.stamps_ns, seq.imu_ns):
-        if stream == 0:
-            yield ImageEvent(ns * 1e-9, ns, seq.image(i))
-        else:
+        if stream == 1:
             yield ImuEvent(ns * 1e-9, ns, seq.imu.gyro[i], seq.imu.accel[i])
+            continue
+        try:
+            yield ImageEvent(ns * 1e-9, ns, seq.image(i))
+        except DataError as err:  # a missing or corrupt PNG: that frame is dropped, as a bad message would be
+            yield DropEvent("image_malformed", ns, str(err))
 
 
 def find_calib(path) -> Path | None:
@@ -251,8 +315,10 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
                   imu_topic: str | None = None, gt_topic: str | None = None) -> Sequence:
     """Open any supported recording as a ``Sequence``.
 
-    ASL folders load images and depth lazily; bags are read once into memory (images as uint8 arrays).
-    ``calib`` overrides or supplies the calibration (bags have none of their own; see the module docstring).
+    ASL folders load images and depth lazily; bags are read once into memory (images as arrays). ``calib``
+    overrides or supplies the calibration (bags have none of their own; see the module docstring). The topics are
+    chosen by ``choose_topics`` (``image_topic`` etc. explicit). Evaluation takes no partial data: a message that
+    cannot be decoded is a DataError naming it.
     """
     path, kind = resolve_input(path)
     if isinstance(calib, (str, Path)):
@@ -268,7 +334,10 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     imus: list[ImuEvent] = []
     gts: list[_GtEvent] = []
     sink = {ImageEvent: images, ImuEvent: imus, _GtEvent: gts}
-    for ev in _events(path, kind, {"image": image_topic, "imu": imu_topic, "gt": gt_topic}):
+    for ev in _events(path, kind, {"image": TopicRequest(image_topic), "imu": TopicRequest(imu_topic),
+                                   "gt": TopicRequest(gt_topic)}):
+        if isinstance(ev, DropEvent):
+            raise DataError(f"{path}: {ev.detail}")
         sink[type(ev)].append(ev)
     if not images:
         raise DataError(f"{path}: the image topic has no messages")
