@@ -199,9 +199,10 @@ class ClassicalBackbone(Backbone):
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
-            pts = torch.einsum("nij,jhw->nihw", R, rays.T.reshape(3, h, w)) * depth[:, None] + t[:, :, None, None]
+            pts = (R @ rays.T).view(n, 3, h, w) * depth[:, None] + t[:, :, None, None]
             if float(conf.sum()) > 1e-6:
-                s = float((conf * pts.norm(dim=1)).sum() / conf.sum())
+                dist = (pts[:, 0].square() + pts[:, 1].square() + pts[:, 2].square()).sqrt()  # [n,h,w]
+                s = float((conf * dist).sum() / conf.sum())
             else:
                 s = float(np.linalg.norm(sfm.points[np.isfinite(sfm.points[:, 0])], axis=1).mean())
             t, depth = t / s, depth / s
