@@ -113,7 +113,7 @@ class ClassicalBackbone(Backbone):
 
     ``preprocess`` holds torch's intra-op pool at one thread: its OpenMP workers meet at a barrier after every
     operator, and when another process (or the node's executor) takes a core, the waiting worker spins; on the
-    shared 2-core machine that made the plane sweep 7x slower in CPU time. Independent reference frames on
+    shared 2-core machine that made the plane sweep ~7x slower. Independent reference frames on
     separate threads use both cores without a barrier per operator.
     """
 
