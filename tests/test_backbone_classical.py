@@ -104,9 +104,11 @@ def test_scale_is_normalised_like_vggt(half_clip):
     assert pred.metric is False
 
 
-def test_plane_sweep_recovers_an_exact_plane():
-    """Sources made by the exact plane-induced homographies of a fronto-parallel textured plane at depth 2.7 (a
-    fractional disparity of 5.56 px for the x baseline: no locking onto whole pixels)."""
+@pytest.fixture(scope="module")
+def exact_plane() -> tuple[tuple, float, int]:
+    """(plane_sweep's positional arguments, the plane's depth 2.7, image width): sources made by the exact
+    plane-induced homographies of a fronto-parallel textured plane (a fractional disparity of 5.56 px for the x
+    baseline: no locking onto whole pixels), its left quarter a flat band without texture."""
     rng = np.random.default_rng(0)
     h, w = 90, 120
     ref = cv2.GaussianBlur(rng.uniform(0, 1, (h, w)).astype(np.float32), (0, 0), 1.5)
@@ -119,12 +121,27 @@ def test_plane_sweep_recovers_an_exact_plane():
     frames = [ref] + [cv2.warpPerspective(ref, K @ (np.eye(3) - np.outer(t, [0, 0, 1]) / depth) @ np.linalg.inv(K),
                                           (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
                       for t in t_wc[1:]]
-    d, conf = plane_sweep(torch.as_tensor(np.stack(frames))[:, None], torch.as_tensor(K, dtype=torch.float32),
-                          torch.eye(3).expand(4, 3, 3), torch.as_tensor(t_wc, dtype=torch.float32),
-                          torch.tensor([[1.0, 4.0]] * 4), n_depths=32, n_sources=3, best_k=2, window=5)
+    args = (torch.as_tensor(np.stack(frames))[:, None], torch.as_tensor(K, dtype=torch.float32),
+            torch.eye(3).expand(4, 3, 3), torch.as_tensor(t_wc, dtype=torch.float32), torch.tensor([[1.0, 4.0]] * 4))
+    return args, depth, w
+
+
+def test_plane_sweep_recovers_an_exact_plane(exact_plane):
+    args, depth, w = exact_plane
+    d, conf = plane_sweep(*args, n_depths=32, n_sources=3, best_k=2, window=5)
     inner = (slice(10, -10), slice(w // 4 + 10, -10))
     assert np.median(np.abs(d[0][inner].numpy() / depth - 1)) < 0.005
     assert float(conf[0][inner].mean()) > 3 * float(conf[0][:, 4: w // 4 - 4].mean())
+
+
+def test_plane_sweep_result_does_not_depend_on_its_threads(exact_plane):
+    """Reference frames swept on 3 threads give bit-identical depth and confidence to one thread, for every
+    source selection path (all sources, and the best 2 of 3)."""
+    args, _, _ = exact_plane
+    for best_k in (2, 3):
+        one = plane_sweep(*args, n_depths=20, n_sources=3, best_k=best_k, window=5, workers=1)
+        three = plane_sweep(*args, n_depths=20, n_sources=3, best_k=best_k, window=5, workers=3)
+        assert torch.equal(one[0], three[0]) and torch.equal(one[1], three[1])
 
 
 def test_corrections_are_the_trainable_groups(half_clip):

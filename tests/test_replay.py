@@ -7,6 +7,7 @@ Each fault bag is a real bag with one edit; replaying it must skip or flag the a
 
 from __future__ import annotations
 
+import argparse
 import os
 import shutil
 import tempfile
@@ -39,6 +40,7 @@ from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.ros1 import ros1_types, write_ros1_bag
 from vi3_ros.params import resolve
 from vi3_ros.replay import replay
+from vi3_ros.replay_bench import bench_replay
 
 CLIP_FRAMES = 16  # clip_length 8 x stride 2, non-overlapping
 
@@ -458,3 +460,13 @@ def test_dropped_inputs_are_counted_and_published_per_period(bag3, tmp_path):
     assert len(per_period) >= 2 and sum(per_period) == n_dup  # every drop in exactly one period's count
     per_clip = sum(int(s.values["input_drops"].split(":")[1]) for s in _statuses(msgs) if s.values["input_drops"])
     assert 0 < per_clip <= n_dup
+
+
+def test_bench_replay_reports_speed_and_cpu_seconds_per_clip(bag3):
+    """``vi3 bench replay --input ASL``: every clip processed, a realtime factor, a latency and the process CPU
+    seconds per clip."""
+    asl, _ = bag3
+    out = bench_replay(argparse.Namespace(input=str(asl), backbone="classical", device="cpu", repeats=1))
+    assert out["clips"] >= 2 and sum(out["outcomes"].values()) == out["clips"]
+    assert out["realtime_factor"] > 0 and out["median_latency_ms"] > 0
+    assert 0 < out["cpu_s_per_clip"] < 60

@@ -3,8 +3,10 @@
 Without ``--input`` it generates (once, cached under ``.cache/bench`` of the working directory) a 20 s EuRoC-format
 sequence and converts it like a user would (ASL -> ROS 1 bag -> rosbag2 MCAP), then replays it in ``init`` mode
 with the chosen backbone. ``realtime_factor`` = bag seconds / replay wall seconds (backbone loading excluded), so
->= 1 means the pipeline keeps up with the recording while processing every clip. ``peak_rss_mb``: the process's
-peak resident memory (MB, ``getrusage``), which must not grow with the bag's length (``--seconds``).
+>= 1 means the pipeline keeps up with the recording while processing every clip. ``cpu_s_per_clip`` = process CPU
+seconds of the replay (all threads; reading, decoding and writing included) / clips: less sensitive than wall time to
+other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``), which must not
+grow with the bag's length (``--seconds``).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import resource
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -48,13 +51,16 @@ def bench_replay(args: argparse.Namespace) -> dict:
         inp, calib = _default_input(args.seconds or BENCH_SECONDS)
     values = resolve({"backbone": args.backbone, "device": args.device, "mode": "init",
                       **({"calib_file": str(calib)} if calib is not None else {})})
-    runs = []
+    runs, cpu = [], []
     for _ in range(args.repeats or 1):
         with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
+            c0 = time.process_time()
             runs.append(replay(inp, Path(tmp) / "out.mcap", values=values, progress=False))
+            cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
     rtf = [r.realtime_factor for r in runs]
     best = runs[int(np.argsort(rtf)[len(rtf) // 2])]
-    return {"realtime_factor": round(float(np.median(rtf)), 3), "clips": best.clips,
+    return {"realtime_factor": round(float(np.median(rtf)), 3), "cpu_s_per_clip": round(float(np.median(cpu)), 4),
+            "clips": best.clips,
             "median_latency_ms": round(best.median_latency_ms, 1), "bag_s": round(best.bag_s, 3),
             "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
             "input": str(inp), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}

@@ -23,7 +23,10 @@ The last clip's inputs, status and reason are also on the backbone (``last_input
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -82,12 +85,36 @@ def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: 
     return float(np.percentile(z, 1)) / margin, float(np.percentile(z, 99)) * margin
 
 
+@contextlib.contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op thread count set to ``n`` for the block, then restored."""
+    old = torch.get_num_threads()
+    if old != n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if old != n:
+            torch.set_num_threads(old)
+
+
+def default_threads() -> int:
+    """Threads of the classical backbone: two where this process may use two or more CPUs, else one."""
+    return min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
 class ClassicalBackbone(Backbone):
     """Classical multi-view geometry behind the backbone contract (see the module docstring).
 
     Options (keyword-only): ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120);
     ``max_features`` tracked corners per frame; ``n_depths``, ``n_sources``, ``best_k``, ``window``: plane-sweep
-    settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly.
+    settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly; ``threads``: Python
+    threads that sweep reference frames concurrently (default ``default_threads()``).
+
+    ``preprocess`` holds torch's intra-op pool at one thread: its OpenMP workers meet at a barrier after every
+    operator, and when another process (or the node's executor) takes a core, the waiting worker spins; on the
+    shared 2-core machine that made the plane sweep ~7x slower. Independent reference frames on
+    separate threads use both cores without a barrier per operator.
     """
 
     name = "classical"
@@ -101,13 +128,16 @@ class ClassicalBackbone(Backbone):
 
     def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
                  downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24, n_sources: int = 2,
-                 best_k: int = 2, window: int = 7, bundle_adjust: bool = True) -> None:
+                 best_k: int = 2, window: int = 7, bundle_adjust: bool = True, threads: int | None = None) -> None:
         super().__init__(device=device, dtype=dtype)
         if downscale < 1:
             raise ValueError(f"downscale must be >= 1, got {downscale}")
         self.downscale = downscale
         self.max_features = max_features
-        self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window)
+        threads = default_threads() if threads is None else threads
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window, workers=threads)
         self.bundle_adjust = bundle_adjust
         #: The last clip's inputs (status, reason, diagnostics); its corrections are what ``param_groups`` returns.
         self.last_inputs: ClassicalInputs | None = None
@@ -137,6 +167,10 @@ class ClassicalBackbone(Backbone):
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
         """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``:
         images [n,3,h,w] and K [n,3,3] at the working resolution (``_hub.resize_crop``)."""
+        with _torch_threads(1):
+            return self._preprocess(images, K)
+
+    def _preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
         images, K = check_clip(images, K)
         n, H, W = images.shape[:3]
         h, w = self.working_size(H, W)
@@ -165,9 +199,10 @@ class ClassicalBackbone(Backbone):
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
-            pts = torch.einsum("nij,jhw->nihw", R, rays.T.reshape(3, h, w)) * depth[:, None] + t[:, :, None, None]
+            pts = (R @ rays.T).view(n, 3, h, w) * depth[:, None] + t[:, :, None, None]
             if float(conf.sum()) > 1e-6:
-                s = float((conf * pts.norm(dim=1)).sum() / conf.sum())
+                dist = (pts[:, 0].square() + pts[:, 1].square() + pts[:, 2].square()).sqrt()  # [n,h,w]
+                s = float((conf * dist).sum() / conf.sum())
             else:
                 s = float(np.linalg.norm(sfm.points[np.isfinite(sfm.points[:, 0])], axis=1).mean())
             t, depth = t / s, depth / s

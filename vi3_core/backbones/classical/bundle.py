@@ -3,85 +3,108 @@
 Minimises the Huber-robust pixel reprojection error over the poses of frames 1..n-1 and the 3D points (frame 0
 fixed as the gauge; the free scale gauge is damped by LM and normalised by the caller). A clip has few frames
 and at most a few thousand points, so the reduced camera system is a dense [6(n-1)]^2 matrix and every
-per-observation block is built at once with einsum.
+per-observation block is built at once. The arithmetic runs in torch (float64) so that its matrix products use
+torch's intra-op thread setting rather than a BLAS thread pool of their own.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from vi3_core import so3
 
 
-def _linearise(R_cw, t_cw, X, uv, vis, K, huber_px):
-    """Residuals [m,n,2], robust weights [m,n], Jacobians wrt camera [m,n,2,6] and point [m,n,2,3]."""
-    Xc = np.einsum("nij,mj->mni", R_cw, X, optimize=True) + t_cw[None]
-    z = np.where(vis, Xc[..., 2], 1.0)
-    f = np.diag(K)[:2]
-    r = np.where(vis[..., None], Xc[..., :2] / z[..., None] * f + K[:2, 2] - np.nan_to_num(uv), 0.0)
-    norm = np.linalg.norm(r, axis=-1)
-    w = np.where(vis, np.minimum(1.0, huber_px / np.maximum(norm, 1e-12)), 0.0)
-    Jp = np.zeros(Xc.shape[:2] + (2, 3))
-    Jp[..., 0, 0], Jp[..., 1, 1] = f[0] / z, f[1] / z
-    Jp[..., 0, 2], Jp[..., 1, 2] = -f[0] * Xc[..., 0] / z**2, -f[1] * Xc[..., 1] / z**2
-    # Left perturbation Xc' = exp(dw) R X + t + dt: dXc/d(dw) = -hat(R X) = -hat(Xc - t), dXc/d(dt) = I.
-    Jc = np.concatenate([-Jp @ so3.hat(Xc - t_cw[None]), Jp], axis=-1)
-    Jl = Jp @ R_cw[None]
-    return r, w, Jc, Jl
+def _residuals(R_cw, t_cw, X, uv, vis, K):
+    """Camera-frame points Xc [m,n,3], safe depths z [m,n] (1 where unseen) and residuals r [m,n,2] (0 where
+    unseen) of points X [m,3] in cameras R_cw [n,3,3], t_cw [n,3] against pixels uv [m,n,2]."""
+    Xc = torch.einsum("nij,mj->mni", R_cw, X) + t_cw
+    z = torch.where(vis, Xc[..., 2], 1.0)
+    r = torch.where(vis[..., None], Xc[..., :2] / z[..., None] * K.diagonal()[:2] + K[:2, 2] - uv, 0.0)
+    return Xc, z, r
 
 
-def _cost(r, w, huber_px):
-    """Huber cost of residuals r [m,n,2] with weights w [m,n] from ``_linearise``."""
-    norm = np.linalg.norm(r, axis=-1)
-    return float(np.sum(np.where(norm <= huber_px, 0.5 * norm**2, huber_px * (norm - 0.5 * huber_px)) * (w > 0)))
+def _cost(r, vis, huber_px):
+    """Huber cost of residuals r [m,n,2] over the observations ``vis`` [m,n]."""
+    norm = r.norm(dim=-1)
+    return float((torch.where(norm <= huber_px, 0.5 * norm**2, huber_px * (norm - 0.5 * huber_px)) * vis).sum())
+
+
+def _inv3(A: torch.Tensor) -> torch.Tensor:
+    """Inverses [...,3,3] of invertible 3x3 matrices A [...,3,3] by the adjugate (elementwise, no LAPACK call)."""
+    c0 = torch.linalg.cross(A[..., 1, :], A[..., 2, :])
+    c1 = torch.linalg.cross(A[..., 2, :], A[..., 0, :])
+    c2 = torch.linalg.cross(A[..., 0, :], A[..., 1, :])
+    det = (A[..., 0, :] * c0).sum(-1)
+    return torch.stack([c0, c1, c2], -1) / det[..., None, None]
 
 
 def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
                   K: np.ndarray, *, iterations: int = 20, huber_px: float = 1.0,
-                  tol: float = 1e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  tol: float = 1e-4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refine camera-to-world poses R_wc [n,3,3], t_wc [n,3] and points [m,3] (NaN rows are left out) against
     the observations uv [m,n,2] (pixels, where ``visible`` [m,n]). Returns the refined (R_wc, t_wc, points)."""
     n = len(R_wc)
     pid = np.flatnonzero(np.isfinite(points[:, 0]))
-    X, obs, vis = points[pid].copy(), uv[pid], visible[pid]
-    R_cw = np.swapaxes(R_wc, 1, 2).copy()
-    t_cw = -(R_cw @ t_wc[..., None])[..., 0]
+    f64 = torch.float64
+    X = torch.as_tensor(points[pid], dtype=f64)
+    obs = torch.as_tensor(np.nan_to_num(uv[pid]), dtype=f64)
+    vis = torch.as_tensor(visible[pid])
+    K_t = torch.as_tensor(K, dtype=f64)
+    fx, fy = float(K[0, 0]), float(K[1, 1])
+    R_cw = torch.as_tensor(R_wc, dtype=f64).transpose(1, 2).contiguous()
+    t_cw = -(R_cw @ torch.as_tensor(t_wc, dtype=f64)[..., None])[..., 0]
+    eye6, eye3 = torch.eye(6, dtype=f64), torch.eye(3, dtype=f64)
     lam = 1e-3
-    r, w, Jc, Jl = _linearise(R_cw, t_cw, X, obs, vis, K, huber_px)
-    cost = _cost(r, w, huber_px)
+    Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K_t)
+    cost = _cost(r, vis, huber_px)
+    linearise = True
     for _ in range(iterations):
-        Jc[:, 0] = 0.0  # frame 0 is the gauge
-        WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
-        Hcc = np.einsum("mnri,mnrj->nij", WJc, Jc, optimize=True)[1:]  # [n-1,6,6]
-        Hll = np.einsum("mnri,mnrj->mij", WJl, Jl, optimize=True)  # [m,3,3]
-        Hcl = np.einsum("mnri,mnrj->mnij", WJc, Jl, optimize=True)[:, 1:]  # [m,n-1,6,3]
-        bc = np.einsum("mnri,mnr->ni", WJc, r, optimize=True)[1:]
-        bl = np.einsum("mnri,mnr->mi", WJl, r, optimize=True)
-        Hcc_d = Hcc + lam * np.eye(6) * np.diagonal(Hcc, axis1=1, axis2=2)[:, :, None]
-        Hll_d = Hll + lam * np.eye(3) * np.diagonal(Hll, axis1=1, axis2=2)[:, :, None] + 1e-9 * np.eye(3)
-        Hll_inv = np.linalg.inv(Hll_d)
-        Y = Hcl @ Hll_inv[:, None]  # [m,n-1,6,3]
-        S = -np.einsum("maij,mbkj->aibk", Y, Hcl, optimize=True)
-        S[np.arange(n - 1), :, np.arange(n - 1), :] += Hcc_d
-        rhs = -bc + np.einsum("maij,mj->ai", Y, bl, optimize=True)
-        dc = np.linalg.solve(S.reshape(6 * (n - 1), -1), rhs.ravel()).reshape(n - 1, 6)
-        dl = -np.einsum("mij,mj->mi", Hll_inv, bl + np.einsum("maji,aj->mi", Hcl, dc, optimize=True))
-        R_new, t_new = R_cw.copy(), t_cw.copy()
-        R_new[1:] = so3.exp(dc[:, :3]) @ R_cw[1:]
+        if linearise:
+            # Huber weights; Jacobians: Jp = d(pixel)/d(Xc) [m,n,2,3]; left perturbation Xc' = exp(dw) R X + t + dt
+            # gives d/d(dw) = -Jp hat(R X) (row-wise (R X) x Jp) and d/d(dt) = Jp; d/dX = Jp R.
+            w = torch.where(vis, (huber_px / r.norm(dim=-1).clamp_min(1e-12)).clamp_max(1.0), 0.0)
+            Jp = torch.zeros(Xc.shape[:2] + (2, 3), dtype=f64)
+            Jp[..., 0, 0], Jp[..., 1, 1] = fx / z, fy / z
+            Jp[..., 0, 2], Jp[..., 1, 2] = -fx * Xc[..., 0] / z**2, -fy * Xc[..., 1] / z**2
+            Jc = torch.cat([torch.linalg.cross((Xc - t_cw)[..., None, :].expand_as(Jp), Jp), Jp], -1)
+            Jc[:, 0] = 0.0  # frame 0 is the gauge
+            Jl = torch.einsum("mnri,nij->mnrj", Jp, R_cw)
+            WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
+            Hcc = torch.einsum("mnri,mnrj->nij", WJc, Jc)[1:]  # [n-1,6,6]
+            Hll = torch.einsum("mnri,mnrj->mij", WJl, Jl)  # [m,3,3]
+            # Sums of outer products over the two residual rows, written out (batched 6x2 @ 2x3 products are slow).
+            Hcl = torch.addcmul(WJc[:, 1:, 0, :, None] * Jl[:, 1:, 0, None, :], WJc[:, 1:, 1, :, None],
+                                Jl[:, 1:, 1, None, :])  # [m,n-1,6,3]
+            bc = torch.einsum("mnri,mnr->ni", WJc, r)[1:]
+            bl = torch.einsum("mnri,mnr->mi", WJl, r)
+        Hcc_d = Hcc + lam * eye6 * Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
+        Hll_inv = _inv3(Hll + lam * eye3 * Hll.diagonal(dim1=1, dim2=2)[:, :, None] + 1e-9 * eye3)
+        Hi = Hll_inv[:, None]  # Y = Hcl Hll^-1 [m,n-1,6,3], written out like Hcl
+        Y = Hcl[..., 0:1] * Hi[..., 0:1, :] + Hcl[..., 1:2] * Hi[..., 1:2, :] + Hcl[..., 2:3] * Hi[..., 2:3, :]
+        # Schur complement S = Hcc - sum_m Y_m Hcl_m^T as one matrix product over (point, point coordinate).
+        S = -(Y.permute(1, 2, 0, 3).reshape(6 * (n - 1), -1) @ Hcl.permute(1, 2, 0, 3).reshape(6 * (n - 1), -1).T)
+        S = S.view(n - 1, 6, n - 1, 6)
+        S[torch.arange(n - 1), :, torch.arange(n - 1), :] += Hcc_d
+        rhs = -bc + torch.einsum("maij,mj->ai", Y, bl)
+        dc = torch.linalg.solve(S.reshape(6 * (n - 1), -1), rhs.reshape(-1)).reshape(n - 1, 6)
+        dl = -torch.einsum("mij,mj->mi", Hll_inv, bl + torch.einsum("maji,aj->mi", Hcl, dc))
+        R_new, t_new = R_cw.clone(), t_cw.clone()
+        R_new[1:] = torch.from_numpy(so3.exp(dc[:, :3].numpy())) @ R_cw[1:]
         t_new[1:] = t_cw[1:] + dc[:, 3:]
         X_new = X + dl
-        lin_new = _linearise(R_new, t_new, X_new, obs, vis, K, huber_px)
-        cost_new = _cost(lin_new[0], lin_new[1], huber_px)
-        if cost_new < cost:
+        Xc_new, z_new, r_new = _residuals(R_new, t_new, X_new, obs, vis, K_t)
+        cost_new = _cost(r_new, vis, huber_px)
+        linearise = cost_new < cost
+        if linearise:
             done = cost - cost_new < tol * cost
-            R_cw, t_cw, X, cost = R_new, t_new, X_new, cost_new
-            r, w, Jc, Jl = lin_new
+            R_cw, t_cw, X, cost, Xc, z, r = R_new, t_new, X_new, cost_new, Xc_new, z_new, r_new
             lam = max(lam / 3.0, 1e-7)
             if done:
                 break
         else:
             lam *= 5.0
-    R_out = np.swapaxes(R_cw, 1, 2)
+    R_out = R_cw.transpose(1, 2)
     out = np.full_like(points, np.nan)
-    out[pid] = X
-    return R_out, -(R_out @ t_cw[..., None])[..., 0], out
+    out[pid] = X.numpy()
+    return R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out
