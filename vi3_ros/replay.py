@@ -386,7 +386,7 @@ def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, val
                                                          event.reason.startswith("image"))
             summary.frames += is_frame
             bar.update(is_frame)
-    pipeline.close()
-    if t_last is not None:  # the final counts
+    if t_last is not None:  # the final counts, while the pipeline still publishes (a closed one does not)
         pipeline.publish_diagnostics(t_last)
+    pipeline.close()
     summary.bag_s = 0.0 if t_first is None else (t_last - t_first) * 1e-9
