@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from vi3_core import so3
-from vi3_core.init import InitOptions, initialise
+from vi3_core.init import InitOptions, initialise, validate
 from vi3_core.sim.imu import ImuNoise
 from vi3_core.sim.visual import InitCase, PoseNoise, make_init_case
 from vi3_core.types import ImuSamples, InitStatus
@@ -256,3 +256,11 @@ def test_bad_data_is_rejected_with_a_reason(fault, expect):
         stamps[3] = stamps[2]
     r = initialise(case.geometry, imu, stamps, case.T_BC, options=options)
     assert r.status is InitStatus.REJECTED and expect in r.reason, r.reason
+
+
+def test_a_gap_just_over_the_limit_is_named_with_the_digits_that_show_it():
+    """A 0.0500001 s IMU gap against max_imu_gap 0.05: the message never reads "0.050 s ... (max 0.050 s)"."""
+    t = np.concatenate([np.arange(5) * 0.01, 0.04 + 0.0500001 + np.arange(5) * 0.01])
+    imu = ImuSamples(t, np.zeros((len(t), 3)), np.zeros((len(t), 3)))
+    reason = validate.check_imu(imu, np.array([0.0, 0.05, 0.13]), InitOptions(max_imu_gap_s=0.05))
+    assert reason is not None and "IMU gap of 0.0500001 s > max 0.0500000 s" in reason, reason

@@ -37,13 +37,20 @@ def check_imu(imu: ImuSamples, stamps: np.ndarray, options: InitOptions) -> str 
     span = (imu.t[1:] > stamps[0]) & (imu.t[:-1] < stamps[-1])
     if span.any() and dt[span].max() > options.max_imu_gap_s:
         i = int(np.flatnonzero(span)[np.argmax(dt[span])])
-        return f"IMU gap of {dt[i]:.3f} s at t={imu.t[i]:.6f} s (max {options.max_imu_gap_s:.3f} s)"
+        d = _decimals_apart(dt[i], options.max_imu_gap_s)
+        return f"IMU gap of {dt[i]:.{d}f} s > max {options.max_imu_gap_s:.{d}f} s at t={imu.t[i]:.6f} s"
     counts = np.diff(np.searchsorted(imu.t, stamps))
     if counts.min() < options.min_samples_per_interval:
         i = int(np.argmin(counts))
         return (f"only {int(counts[i])} IMU sample(s) between frames {i} and {i + 1} "
                 f"(need {options.min_samples_per_interval})")
     return None
+
+
+def _decimals_apart(a: float, b: float) -> int:
+    """The fewest decimals (at least 3) at which ``a`` and ``b`` print differently, so that a message comparing
+    them never shows two equal numbers (0.0500001 vs 0.05 needs 7)."""
+    return next((d for d in range(3, 17) if f"{a:.{d}f}" != f"{b:.{d}f}"), 17)
 
 
 def check_geometry(geometry: Geometry, n: int) -> str | None:
