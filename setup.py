@@ -38,7 +38,7 @@ setup(
     },
     entry_points={
         "console_scripts": [
-            "vi3 = vi3_ros.cli:main",
+            "vi3 = vi3_ros.cli:program",
             "vi3_node = vi3_ros.node:main",
         ],
     },

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
+
+from vi3_ros import interrupts
 
 SUBCOMMANDS = ("bench", "demo", "replay", "eval", "make_bag")
 
@@ -20,8 +21,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    interrupts.set_phase(interrupts.RUNNING)
+    try:
+        return int(args.func(args) or 0)
+    finally:
+        interrupts.set_phase(interrupts.FINISHED)
+
+
+def program() -> None:
+    """The ``vi3`` program: SIGTERM ends it with status 143 at any moment (``vi3_ros.interrupts``)."""
+    interrupts.exit_on_signal()
+    interrupts.end(main())
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    program()

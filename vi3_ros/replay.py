@@ -37,6 +37,7 @@ from vi3_core.anchor.options import MODES
 from vi3_core.dataset.asl import find_mav0
 from vi3_core.errors import DataError, Vi3Error
 from vi3_core.types import ImuSamples
+from vi3_ros import interrupts
 from vi3_ros.io.reader import (
     CameraInfoEvent,
     DropEvent,
@@ -167,7 +168,7 @@ class ReplayInterrupted(KeyboardInterrupt):
     """A replay stopped by SIGINT (or SIGTERM, which the command turns into this); ``partial`` as ReplayAborted."""
 
     def __init__(self, partial: Path | None) -> None:
-        super().__init__(partial)
+        super().__init__(kept_text(partial))
         self.partial = partial
 
 
@@ -331,8 +332,10 @@ def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any]
         values = {**values, "calib_file": str(found) if found is not None else ""}
     image, imu = topic_requests(values, image_topic, imu_topic)
     summary = ReplaySummary()
+    interrupts.hold()  # a temporary output exists only together with the code that removes it
     sink = McapSink(output, types=types, force=force)
     try:
+        interrupts.release()  # a signal that came meanwhile interrupts here
         pipeline = make_pipeline(values, sink=sink, types=types, synchronous=True,
                                  on_report=lambda r: _record_latency(summary, r))
         start = time.perf_counter()  # model loading is not part of the replay's speed
@@ -345,14 +348,15 @@ def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any]
         summary.drops = pipeline.drop_counts
         summary.outcomes = Counter(pipeline.outcomes)
         summary.written = Counter(sink.counts)
-    except KeyboardInterrupt:
-        raise ReplayInterrupted(sink.abandon()) from None
-    except (Vi3Error, OSError) as err:
+        interrupts.hold()  # the output is finished from here on: a signal is recorded (the command reports it)
+    except BaseException as err:
+        interrupts.hold()  # what is kept is decided without a signal cutting it short
         partial = sink.abandon()
-        why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
-        raise ReplayAborted(f"{why}; {kept_text(partial)}", partial) from err
-    except BaseException:
-        sink.abandon()
+        if isinstance(err, KeyboardInterrupt):
+            raise ReplayInterrupted(partial) from None
+        if isinstance(err, Vi3Error | OSError):
+            why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+            raise ReplayAborted(f"{why}; {kept_text(partial)}", partial) from err
         raise
     try:
         summary.output = sink.commit() if summary.results else sink.abandon()

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 
 from vi3_core.errors import Vi3Error
+from vi3_ros import interrupts
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -45,36 +45,33 @@ def values_from_args(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     """Exit status: 0 with a complete output; 1 when no clip produced a result (the statuses saying why are kept as
-    OUT.partial.mcap); 2 for an input, output or configuration that cannot be used; 128 + signal number when
-    interrupted (SIGINT, SIGTERM). Every unfinished replay says on stderr what it kept."""
-    from vi3_core.eval.report import to_json
-    from vi3_ros.replay import ReplayInterrupted, kept_text, replay
+    OUT.partial.mcap); 2 for an input, output or configuration that cannot be used; 128 + signal number (130 SIGINT,
+    143 SIGTERM) when a signal arrived, at any moment. Every unfinished replay says on stderr what it kept."""
+    with interrupts.trapped() as trap:  # first: a signal while torch or the backbone loads interrupts too
+        try:
+            from vi3_core.eval.report import to_json
+            from vi3_ros.replay import kept_text, replay
 
-    previous = signal.signal(signal.SIGTERM, _terminate)  # SIGTERM ends like Ctrl-C: the partial output is kept
-    try:
-        summary = replay(args.input, args.output, values=values_from_args(args), copy_inputs=args.copy_inputs,
-                         progress=not args.no_progress and sys.stderr.isatty(), force=args.force,
-                         image_topic=args.image_topic, imu_topic=args.imu_topic)
-    except ReplayInterrupted as exc:
-        signum = _received[-1] if _received else signal.SIGINT
-        print(f"vi3 replay: interrupted by {signal.Signals(signum).name}; {kept_text(exc.partial)}", file=sys.stderr)
-        return 128 + signum
-    except Vi3Error as exc:
-        print(f"vi3 replay: {exc}", file=sys.stderr)
-        return 2
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    print(to_json(summary.as_dict()) if args.json else f"wrote {summary.output}\n{summary.text()}")
-    if not summary.results:
-        print(f"vi3 replay: no clip produced a result: {summary.why_nothing()}; {kept_text(summary.output)}",
-              file=sys.stderr)
-        return 1
-    return 0
-
-
-_received: list[int] = []
+            summary = replay(args.input, args.output, values=values_from_args(args), copy_inputs=args.copy_inputs,
+                             progress=not args.no_progress and sys.stderr.isatty(), force=args.force,
+                             image_topic=args.image_topic, imu_topic=args.imu_topic)
+        except KeyboardInterrupt as exc:  # a ReplayInterrupted says what was kept; before the replay, nothing
+            return _interrupted(trap, str(exc) or "nothing was written")
+        except Vi3Error as exc:
+            print(f"vi3 replay: {exc}", file=sys.stderr)
+            return _interrupted(trap, "the replay had failed (above)") if trap.signum is not None else 2
+        # The replay holds signals from its last step on (the output is final): one that came is reported below.
+        print(to_json(summary.as_dict()) if args.json else f"wrote {summary.output}\n{summary.text()}")
+        if trap.signum is not None:
+            return _interrupted(trap, f"after the replay finished: {summary.output} is complete" if summary.results
+                                else f"after the replay finished without a result; {kept_text(summary.output)}")
+        if not summary.results:
+            print(f"vi3 replay: no clip produced a result: {summary.why_nothing()}; "
+                  f"{kept_text(summary.output)}", file=sys.stderr)
+            return 1
+        return 0
 
 
-def _terminate(signum: int, frame) -> None:
-    _received.append(signum)
-    raise KeyboardInterrupt
+def _interrupted(trap: interrupts.Trap, kept: str) -> int:
+    print(f"vi3 replay: interrupted by {trap.name}; {kept}", file=sys.stderr)
+    return trap.status

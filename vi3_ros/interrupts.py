@@ -1,0 +1,143 @@
+"""SIGTERM and SIGINT for the ``vi3`` commands: SIGTERM at any moment ends the program with status 143 (128 + 15),
+never by the signal's default action; a command that writes an output (``vi3 replay``) traps SIGTERM and SIGINT so
+that it ends with 128 + the signal number keeping a complete output, a partial one named as such, or nothing.
+
+- ``exit_on_signal()``, the program's first step, makes SIGTERM end the process at once (saying so on stderr) while no
+  command traps it: before a command starts (nothing was written) and after it finished (its outputs are final and
+  reported). ``end(status)`` ends the program after its exit functions, skipping the interpreter's teardown of
+  modules, where Python restores SIGTERM's default action (a signal there would kill the process, status -15).
+- Inside ``trapped()`` (a command that writes an output), the first signal raises KeyboardInterrupt in the main
+  thread, so that the command unwinds and keeps or removes what it wrote; later signals are only recorded, so that
+  this cleanup is never cut short.
+- Between ``hold()`` and ``release()`` (an output being created or moved into place, a decision about what is kept)
+  a signal is only recorded; ``release()`` raises it. The command reads ``Trap.signum`` to report it afterwards.
+
+Outside ``trapped()`` (library use, tests) ``hold`` and ``release`` do nothing.
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import signal
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import NoReturn
+
+
+@dataclass
+class Trap:
+    """signum: the first signal received (None: none yet); held: signals are only recorded; raised: the
+    KeyboardInterrupt of the first signal has been raised."""
+
+    signum: int | None = None
+    held: bool = False
+    raised: bool = False
+
+    @property
+    def name(self) -> str:
+        return signal.Signals(self.signum).name if self.signum is not None else ""
+
+    @property
+    def status(self) -> int:
+        """The program's exit status for the received signal (128 + its number)."""
+        return 128 + (self.signum or 0)
+
+
+STARTING = "before the command started; nothing was written"
+RUNNING = "while the command ran"
+FINISHED = "after the command finished"
+_trap: Trap | None = None
+_phase = STARTING  # where the program is, for the message of ``exit_on_signal``'s handler
+_status: int | None = None  # the program's exit status, once ``end`` has it
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    trap = _trap
+    if trap is None:  # no command running: nothing to unwind
+        _exit_now(signum)
+    if trap.signum is None:
+        trap.signum = signum
+    if not trap.held and not trap.raised:
+        trap.raised = True
+        raise KeyboardInterrupt
+
+
+def _flush() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, RuntimeError):  # closed, or interrupted in the middle of a write
+            pass
+
+
+def _exit_now(signum: int) -> None:
+    _flush()
+    os.write(2, f"vi3: interrupted by {signal.Signals(signum).name} {_phase}\n".encode())
+    os._exit(128 + signum)
+
+
+def exit_on_signal() -> None:
+    """The program's first step: SIGTERM outside a command ends the process with status 143 (see the module)."""
+    signal.signal(signal.SIGTERM, _on_signal)
+    atexit.register(_end)  # the first exit function registered runs last
+
+
+def end(status: int) -> NoReturn:
+    """Exit with ``status``: the exit functions run (SIGTERM still ends the program with 143 meanwhile), then the
+    process ends without the interpreter's teardown of modules (after ``exit_on_signal``)."""
+    global _status
+    _status = status
+    sys.exit(status)
+
+
+def _end() -> None:
+    if _status is not None:  # not after an uncaught exception: the interpreter then exits its own way
+        _flush()
+        os._exit(_status)
+
+
+def set_phase(phase: str) -> None:
+    """Where the program is (STARTING, RUNNING or FINISHED), for the message of a SIGTERM outside ``trapped()``."""
+    global _phase
+    _phase = phase
+
+
+@contextmanager
+def trapped() -> Iterator[Trap]:
+    """SIGTERM and SIGINT (unless SIGINT is ignored, as under nohup) as described in the module, for the block; the
+    previous handlers after it. Main thread only (Python's rule for signal handlers)."""
+    global _trap
+    signums = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else [])
+    trap = Trap()
+    previous = {s: signal.getsignal(s) for s in signums}
+    _trap = trap
+    for s in signums:
+        signal.signal(s, _on_signal)
+    try:
+        yield trap
+    finally:
+        trap.held = True  # the command is over: what it wrote is final
+        set_phase(FINISHED)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        _trap = None
+
+
+def hold() -> None:
+    """From now on a signal is only recorded (see ``release``)."""
+    if _trap is not None:
+        _trap.held = True
+
+
+def release() -> None:
+    """Signals raise again; one that arrived since ``hold`` raises KeyboardInterrupt now."""
+    trap = _trap
+    if trap is None:
+        return
+    trap.held = False
+    if trap.signum is not None and not trap.raised:
+        trap.raised = True
+        raise KeyboardInterrupt
