@@ -12,7 +12,8 @@ that it ends with 128 + the signal number keeping a complete output, a partial o
 - Between ``hold()`` and ``release()`` (an output being created or moved into place, a decision about what is kept)
   a signal is only recorded; ``release()`` raises it. The command reads ``Trap.signum`` to report it afterwards.
 
-Outside ``trapped()`` (library use, tests) ``hold`` and ``release`` do nothing.
+Outside ``trapped()`` (library use, tests) ``hold`` and ``release`` do nothing. ``vi3_node`` traps SIGINT and SIGTERM
+the same way around its whole life, so that its shutdown is never cut short by a second signal.
 """
 
 from __future__ import annotations
@@ -106,11 +107,13 @@ def set_phase(phase: str) -> None:
 
 
 @contextmanager
-def trapped() -> Iterator[Trap]:
-    """SIGTERM and SIGINT (unless SIGINT is ignored, as under nohup) as described in the module, for the block; the
-    previous handlers after it. Main thread only (Python's rule for signal handlers)."""
+def trapped(signums: tuple[int, ...] | None = None) -> Iterator[Trap]:
+    """``signums`` (default: SIGTERM, and SIGINT unless it is ignored, as under nohup) as described in the module,
+    for the block; the previous handlers after it. Main thread only (Python's rule for signal handlers)."""
     global _trap
-    signums = [signal.SIGTERM] + ([signal.SIGINT] if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else [])
+    if signums is None:
+        signums = (signal.SIGTERM,) + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+                                       else ())
     trap = Trap()
     previous = {s: signal.getsignal(s) for s in signums}
     _trap = trap

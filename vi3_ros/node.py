@@ -8,13 +8,16 @@ cannot be decoded is dropped and counted by the Pipeline (``drop_input``) like e
 This is the only module that imports rclpy; it uses the API that ROS 2 Humble and Jazzy share.
 Run: ``ros2 run vi3_ros vi3_node --ros-args --params-file config/euroc.yaml`` or ``launch/vi3.launch.py``.
 
-Shutdown (SIGINT, SIGTERM, also with SIGINT inherited as ignored): exit code 0 within ~1 s, even while a clip is in
-the backbone: the clip's outputs are discarded and the worker thread is not waited for beyond ``SHUTDOWN_WAIT_S``.
+Shutdown (SIGINT, SIGTERM, also with SIGINT inherited as ignored, and with a second signal during the shutdown, as
+when Ctrl-C reaches a node under ``ros2 launch`` both from the terminal and from launch): exit code 0 within ~1 s, even
+while a clip is in the backbone: the clip's outputs are discarded and the worker thread is not waited for beyond
+``SHUTDOWN_WAIT_S``.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -31,6 +34,7 @@ from msg_adapters.imu import imu_to_sample
 from msg_adapters.stamps import stamp_to_ns
 from msg_adapters.types import MessageTypes
 from vi3_core.errors import DataError, Vi3Error
+from vi3_ros import interrupts
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
 from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve
 from vi3_ros.pipeline import OUTPUTS, Pipeline, make_pipeline
@@ -166,28 +170,37 @@ class Vi3Node(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args if args is not None else sys.argv)
-    try:
-        node = Vi3Node()
-    except Vi3Error as exc:  # a configuration the node cannot run with: say why, no traceback
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
-        rclpy.shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass  # SIGINT / SIGTERM (rclpy's signal handlers shut the context down): a normal end
-    finally:
-        node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    if node.pipeline.worker.alive:
-        # A clip is still in the backbone, which cannot be interrupted; its outputs are discarded anyway. Do not
-        # let interpreter teardown race that thread: leave now, with the exit code of a clean shutdown.
+    """Run the node until SIGINT or SIGTERM, then end the process at once with status 0; 2 when a configuration
+    it cannot run with stops it at start (one log line names the cause)."""
+    status = 0
+    # Python handlers first: rclpy.init chains its own (which wake the executor and shut the context down) to them.
+    # The first SIGINT/SIGTERM ends spin with KeyboardInterrupt; later ones (a launcher passes the terminal's SIGINT
+    # on to its children, which got it too) are only recorded, so that the shutdown below runs to its end.
+    with interrupts.trapped((signal.SIGINT, signal.SIGTERM)):
+        node = None
+        try:
+            rclpy.init(args=args if args is not None else sys.argv)
+            node = Vi3Node()
+            rclpy.spin(node)
+        except Vi3Error as exc:
+            if node is not None:
+                raise
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")  # no traceback
+            status = 2
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass  # SIGINT / SIGTERM, also while starting: a normal end
+        finally:
+            interrupts.hold()
+            if node is not None:
+                node.destroy_node()
+            if rclpy.ok():
+                rclpy.shutdown()
+        # Leave now: nothing is left to publish or write, a clip may still be in the backbone (which cannot be
+        # interrupted; its outputs are discarded), and the interpreter's teardown of torch alone took over a second
+        # on a loaded machine.
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(0)
-    return 0
+        os._exit(status)
 
 
 if __name__ == "__main__":
