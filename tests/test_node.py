@@ -15,6 +15,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -118,9 +119,11 @@ def node_process():
             proc.communicate()
 
 
-def _feed(asl, types, pub_img, pub_imu, *, seconds: float, speed: float = 1.0, corrupt_every: int = 0) -> None:
+def _feed(asl, types, pub_img, pub_imu, *, seconds: float, speed: float = 1.0, corrupt_every: int = 0,
+          compress: str = "") -> None:
     """Publish the sequence at ``speed`` x recording speed for at most ``seconds`` (looping); every
-    ``corrupt_every``-th image with a wrong step (malformed)."""
+    ``corrupt_every``-th image with a wrong step (malformed); with ``compress`` ("jpeg", "png") the images as
+    ``sensor_msgs/CompressedImage``."""
     start, k = time.monotonic(), 0
     while time.monotonic() - start < seconds:
         t0, loop_start = None, time.monotonic()
@@ -135,6 +138,11 @@ def _feed(asl, types, pub_img, pub_imu, *, seconds: float, speed: float = 1.0, c
             stamp = ev.t_ns + offset
             if isinstance(ev, ImageEvent):
                 msg = numpy_to_image(ev.image, encoding="mono8", stamp_ns=stamp, frame_id="cam0", types=types)
+                if compress:
+                    ok, buf = cv2.imencode(f".{compress}", ev.image)
+                    assert ok
+                    msg = types.make("sensor_msgs/msg/CompressedImage", header=msg.header,
+                                     format=f"mono8; {compress} compressed", data=types.uint8_seq(buf.reshape(-1)))
                 k += 1
                 if corrupt_every and k % corrupt_every == 0:
                     msg.step += 1
@@ -220,6 +228,42 @@ def test_malformed_images_are_counted_on_diagnostics_and_a_flood_keeps_memory_bo
     assert proc.returncode == 0, out
     print(f"flood: {time.monotonic() - start:.0f} s, RSS MB first half max {max(rss[:half]):.0f}, second half max "
           f"{max(rss[half:]):.0f}; drops {({k: v for k, v in last.items() if k.startswith('drop_')})}")
+
+
+def test_compressed_images_are_learnt_from_the_graph_and_processed(cache_dir, tmp_path, node_process):
+    """image_transport auto: the node finds sensor_msgs/CompressedImage on its image topic in the ROS graph,
+    subscribes with that type and decodes the JPEG frames into results (the gate open: this checks decoding)."""
+    rclpy.init()
+    try:
+        types = MessageTypes.from_rclpy()
+        feeder = rclpy.create_node("vi3_test_feeder")
+        topic = "/cam0/image_raw/compressed"
+        pub_img = feeder.create_publisher(types.get("sensor_msgs/msg/CompressedImage"), topic,
+                                          qos_profile_sensor_data)
+        pub_imu = feeder.create_publisher(types.get("sensor_msgs/msg/Imu"), "/imu0", qos_profile_sensor_data)
+        diag: list = []
+        feeder.create_subscription(types.get("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", diag.append,
+                                   RELIABLE)
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(feeder)
+        threading.Thread(target=executor.spin, daemon=True).start()
+        asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+        calib = tmp_path / "cam0.yaml"
+        write_euroc_sensor_yaml(EUROC_CAM0, calib)
+        proc = node_process(calib, "-p", f"image_topic:={topic}", "-p", "max_scale_sigma:=10.0")
+        time.sleep(6.0)
+        _feed(asl, types, pub_img, pub_imu, seconds=2.5, compress="jpeg")
+        time.sleep(3.0)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+        assert proc.returncode == 0 and f"images: {topic} carries sensor_msgs/msg/CompressedImage" in out, out
+        last = [s for m in diag for s in diagnostic_array_to_statuses(m) if s.name == "vi3: pipeline"][-1].values
+        assert int(last.get("outcome_init", 0)) >= 1, last
+        assert not any(k.startswith("drop_image") for k in last), last
+        executor.shutdown()
+        feeder.destroy_node()
+    finally:
+        rclpy.shutdown()
 
 
 def test_cond_with_a_backbone_that_cannot_condition_is_a_clear_start_error(tmp_path):
