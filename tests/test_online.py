@@ -73,7 +73,7 @@ def test_position_fit_recovers_the_scale_of_exact_geometry(seq):
     clip = make_clip(seq, sample_clips(len(seq.stamps), mode="sliding")[2], with_depth=False)
     R1 = clip.gt.T_WB[0, :3, :3]
     g, v1 = R1.T @ clip.gt.g_W, R1.T @ clip.gt.v_WB[0]
-    pre = preintegrate(clip.imu, clip.stamps, clip.gt.bg)
+    pre = preintegrate(clip.imu, clip.stamps, clip.gt.bg, clip.gt.ba)
     geo = _geometry(clip, 0.0, np.random.default_rng(0))
     fit = fit_positions(geo.T_wc, pre, clip.T_BC, g, v1)
     assert abs(fit.scale / TRUE_SCALE - 1) < 0.02 and fit.rms < 0.02
@@ -120,7 +120,8 @@ def test_window_fit_recovers_each_clips_scale_gravity_and_velocity(seq, ba):
     scales = np.linspace(0.5, 4.0, len(clips))
     system = _window(seq, clips, scales, ba=ba)
     fit = system.solve()
-    assert np.linalg.norm(fit.ba - ba) < 0.05, fit.ba
+    true_ba = ba + np.mean([c.gt.ba for c in clips], axis=0)  # the added bias on top of the sequence's own
+    assert np.linalg.norm(fit.ba - true_ba) < 0.05, (fit.ba, true_ba)
     np.testing.assert_allclose(fit.scales, scales, rtol=0.02)  # IMU noise and drifting biases over 5 s
     assert fit.rms.max() < 0.003 and np.all(fit.scale_rel_sigma < 0.01)
     for k, clip in enumerate(clips):
@@ -266,8 +267,12 @@ def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
                for n in names)
 
 
-def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(seq):
+def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(cache_dir):
     """GT tracks without biases (Vicon-only bags): the oracle keeps GT gravity and v1, estimates bg GT-free."""
+    # TODO(lead): realistic data. With the default accelerometer bias (0.098 m/s^2 in room_seed0_10s) the oracle,
+    # which cannot know it here, is 2.7 % off the scale.
+    seq = read_asl(cached_sequence(cache_dir, seconds=4.0, seed=0, motion="agile", accel_bias=False,
+                                   with_depth=False))
     clip = make_clip(seq, sample_clips(len(seq.stamps), mode="sliding")[3], with_depth=False)
     geo = _geometry(clip, 0.0, np.random.default_rng(0))
     no_bias = replace(clip, gt=replace(clip.gt, bg=None, ba=None))
