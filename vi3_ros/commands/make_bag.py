@@ -136,8 +136,10 @@ def run(args: argparse.Namespace) -> int:
         times = make_bag(args.out, _spec(args), overwrite=args.overwrite)
     except DataError as err:
         return fail(str(err))
-    except OSError as err:
-        return fail(f"cannot write {args.out}: {err.strerror or err} ({err.filename or args.out})")
+    except OSError as err:  # a read-only folder, a full disk, an unreadable recording
+        path = Path(err.filename) if err.filename else Path(args.out)
+        verb = "cannot write" if Path(args.out) in (path, *path.parents) else "cannot read"
+        return fail(f"{verb} {path}: {err.strerror or err}")
     except (KeyboardInterrupt, _Terminated) as err:
         name = str(err) or "SIGINT"
         return fail(f"interrupted by {name}; nothing written (partial output removed)",
