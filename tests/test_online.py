@@ -270,7 +270,7 @@ def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
 def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(cache_dir):
     """GT tracks without biases (Vicon-only bags): the oracle keeps GT gravity and v1, estimates bg GT-free."""
     # TODO(lead): realistic data. With the default accelerometer bias (0.098 m/s^2 in room_seed0_10s) the oracle,
-    # which cannot know it here, is 2.7 % off the scale.
+    # which cannot know it here, is 2.9 % off the scale.
     seq = read_asl(cached_sequence(cache_dir, seconds=4.0, seed=0, motion="agile", accel_bias=False,
                                    with_depth=False))
     clip = make_clip(seq, sample_clips(len(seq.stamps), mode="sliding")[3], with_depth=False)
