@@ -172,7 +172,7 @@ class _Euroc:
         self.src = src = euroc_mav0(spec.from_euroc)
         imu_ns, imu = asl.read_imu(src)
         gt = asl.read_groundtruth(src)
-        if gt is None or gt.bg is None:
+        if gt is None:
             raise DataError(f"{src}: no state_groundtruth_estimate0/ to follow (rendering needs the GT trajectory)")
         self.calib = load_calib(src / "cam0" / "sensor.yaml")
         if len(imu_ns) < 2 or np.any(np.diff(imu_ns) <= 0):
@@ -185,8 +185,7 @@ class _Euroc:
         # Frames on the IMU's own stamps: the first at or after each camera period from the start of the shared span.
         want = lo + np.arange(int((hi - lo) // period) + 1) * period
         cam_ns = np.unique(imu_ns[np.minimum(np.searchsorted(imu_ns, want), len(imu_ns) - 1)])
-        cam_ns = cam_ns[(cam_ns >= lo) & (cam_ns <= hi)]
-        cam_ns = cam_ns[cam_ns >= lo + spec.start_s * 1e9]
+        cam_ns = cam_ns[(cam_ns >= lo + spec.start_s * 1e9) & (cam_ns <= hi)]
         if spec.seconds is not None and len(cam_ns):
             cam_ns = cam_ns[cam_ns <= cam_ns[0] + spec.seconds * 1e9]
         if len(cam_ns) < 2:

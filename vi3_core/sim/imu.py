@@ -94,7 +94,7 @@ class ImuSimulator:
         self.traj, self.dt, self.noise, self.with_orientation = traj, float(dt), noise, with_orientation
         self._bg = np.zeros(3) if bg0 is None else np.asarray(bg0, dtype=np.float64)
         self._ba = np.zeros(3) if ba0 is None else np.asarray(ba0, dtype=np.float64)
-        self._rng = [np.random.default_rng([seed, k]) for k in range(6)]
+        self._rng = [np.random.default_rng([seed, k]) for k in range(5)]
         self._started = False
         self._vibration = vibration
         if vibration is not None:
