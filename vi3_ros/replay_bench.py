@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
-from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
 from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.ros1 import write_ros1_bag
 from vi3_ros.params import resolve
@@ -33,7 +33,9 @@ CACHE = Path(".cache") / "bench"
 def _default_input(seconds: float) -> tuple[Path, Path]:
     """(rosbag2 MCAP directory, calibration YAML) of the cached sequence of ``seconds``."""
     asl = cached_sequence(CACHE, seconds=seconds, seed=0, with_depth=False)
-    bag, mcap, calib = asl / "seq.bag", asl / "mcap", asl / "cam0_sensor.yaml"
+    derived = asl / f"derived_{generation_tag(asl)}"  # a regenerated sequence never meets a stale bag
+    derived.mkdir(exist_ok=True)
+    bag, mcap, calib = derived / "seq.bag", derived / "mcap", derived / "cam0_sensor.yaml"
     if not mcap.exists():
         if not bag.exists():
             write_ros1_bag(asl, bag)
