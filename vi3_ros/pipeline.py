@@ -485,9 +485,12 @@ class Pipeline:
         reason = init.reason if not init.ok else (result.status or "ok")
         alpha = result.alpha if result is not None else float("nan")
         values = {"clip": raw.index, "result": kind, "init_status": init.status.value, "reason": reason,
-                  "scale": f"{init.scale:.6g}", "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
+                  "scale": f"{init.scale:.6g}", "scale_sigma": f"{init.scale_sigma:.3g}",
+                  "scale_rel_sigma": f"{init.diagnostics.get('scale_rel_sigma', float('nan')):.3g}",
+                  "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
                   "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
-                  "bg": _vec(init.bg), "t_first": f"{raw.stamps[0]:.9f}", "t_last": f"{raw.stamps[-1]:.9f}",
+                  "bg": _vec(init.bg), "ba": _vec(init.ba), "t_first": f"{raw.stamps[0]:.9f}",
+                  "t_last": f"{raw.stamps[-1]:.9f}",
                   "input_drops": drops, "latency_ms": f"{latency * 1e3:.1f}"}
         if "online" in init.diagnostics:
             values["online"] = init.diagnostics["online"]
