@@ -77,8 +77,12 @@ def test_propagation_stops_where_the_imu_no_longer_supports_it(drone):
 
     p = _prop(_state(traj))
     assert len(p.advance(imu.select(imu.t > T_C + 0.1))) == 0 and "IMU starts at" in p.stopped
-    p = _prop(_state(traj))
-    assert len(p.advance(imu.select(imu.t <= T_C))) == 0 and not p.stopped  # waits for a sample after T_C
+    p = _prop(_state(traj))  # the samples up to T_C first (a clip just chained), then one at a time
+    assert len(p.advance(imu.select(imu.t <= T_C))) == 0 and not p.stopped
+    after = np.flatnonzero(imu.t > T_C)
+    steps = [p.advance(imu.select(slice(i, i + 1))) for i in after[:3]]
+    assert [len(s) for s in steps] == [1, 1, 1] and not p.stopped
+    np.testing.assert_allclose(steps[-1].T_OB[0], _prop(_state(traj)).advance(imu).T_OB[2], atol=1e-12)
 
 
 def test_the_spread_of_propagation_errors_is_what_the_sigmas_say(drone):

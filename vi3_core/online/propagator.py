@@ -78,7 +78,7 @@ class ImuPropagator:
 
     ``advance(imu)`` integrates the samples of ``imu`` after the current time (earlier ones were integrated already,
     or precede the state) and returns the states at them; the first call needs a sample at or before the state's
-    last frame, where the IMU is interpolated. Propagation stops for good (``stopped`` names why; a new chained
+    last frame (in it or an earlier call), where the IMU is interpolated. Propagation stops for good (``stopped`` names why; a new chained
     state starts a new propagator) at the first gap between samples longer than ``max_gap_s``, a non-finite sample,
     or ``max_tau_s`` after the state: beyond those the IMU no longer supports the state. Not thread-safe."""
 
@@ -90,8 +90,9 @@ class ImuPropagator:
         self.T_OB = np.asarray(state.T_OB[-1], np.float64)  # the current state, at time self.t
         self.v_O = np.asarray(state.v_O[-1], np.float64)
         self.t = self.t_c
-        self._gyro: np.ndarray | None = None  # the IMU at self.t (None until the first advance)
+        self._gyro: np.ndarray | None = None  # the IMU at self.t (None until a sample after t_c arrived)
         self._accel: np.ndarray | None = None
+        self._before: ImuSamples | None = None  # until then, the last sample at or before t_c
         self.stopped = ""
 
     def advance(self, imu: ImuSamples) -> PropagatedStates:
@@ -119,10 +120,15 @@ class ImuPropagator:
 
     def _start(self, imu: ImuSamples) -> bool:
         """The IMU at the state's last frame, interpolated between the samples around it; False (stopped when the IMU
-        starts after it) while there is no sample after it yet."""
+        starts after it) while there is no sample after it yet (the last one before it is kept for the next call)."""
+        if self._before is not None:
+            imu = ImuSamples.concatenate([self._before, imu.select(imu.t > self._before.t[0])])
         if len(imu) and imu.t[0] > self.t_c:
             self.stopped = f"IMU starts at {imu.t[0]:.6f} s, after the chained frame at {self.t_c:.6f} s"
-        if self.stopped or not len(imu) or imu.t[-1] <= self.t_c:
+        if self.stopped or not len(imu):
+            return False
+        if imu.t[-1] <= self.t_c:
+            self._before = imu.select(slice(len(imu) - 1, None))
             return False
         self._gyro = np.array([np.interp(self.t_c, imu.t, imu.gyro[:, a]) for a in range(3)])
         self._accel = np.array([np.interp(self.t_c, imu.t, imu.accel[:, a]) for a in range(3)])
