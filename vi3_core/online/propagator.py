@@ -77,10 +77,11 @@ class ImuPropagator:
     """Propagates one chained state (``OdomState``, its last frame) with the IMU samples that follow it.
 
     ``advance(imu)`` integrates the samples of ``imu`` after the current time (earlier ones were integrated already,
-    or precede the state) and returns the states at them; the first call needs a sample at or before the state's
-    last frame (in it or an earlier call), where the IMU is interpolated. Propagation stops for good (``stopped`` names why; a new chained
-    state starts a new propagator) at the first gap between samples longer than ``max_gap_s``, a non-finite sample,
-    or ``max_tau_s`` after the state: beyond those the IMU no longer supports the state. Not thread-safe."""
+    or precede the state) and returns the states at them. The IMU is interpolated at the state's last frame, so
+    nothing is returned until calls have brought a sample at or before it and one after it. Propagation stops for
+    good (``stopped`` names why; a new chained state starts a new propagator) at the first gap between samples longer
+    than ``max_gap_s``, a non-finite sample, or ``max_tau_s`` after the state: beyond those the IMU no longer supports
+    the state. Not thread-safe."""
 
     def __init__(self, state: OdomState, *, gravity_norm: float, max_gap_s: float, max_tau_s: float) -> None:
         self.t_c = float(state.stamps[-1])
