@@ -45,7 +45,9 @@ def covariances(states: PropagatedStates, state: OdomState, options: InitOptions
 
 class ImuOdometry:
     """The IMU-rate odometry of one stream; thread-safe (``restart`` on the worker thread, ``add`` on the input
-    thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``values`` its parameters."""
+    thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``values`` its parameters. Lock order: ``restart``
+    calls ``imu_since`` (which takes the Pipeline's lock) under this object's lock, so the Pipeline must not call
+    into this object while it holds its own."""
 
     def __init__(self, values: dict[str, Any], *, init_options: InitOptions, max_tau_s: float, types: MessageTypes,
                  publish: Callable[[str, Any, int], None]) -> None:
