@@ -28,7 +28,7 @@ import numpy as np
 
 from vi3_core.dataset.asl import find_mav0, read_groundtruth
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
-from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
 from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.errors import DataError
 from vi3_ros.io.convert import convert_to_rosbag2
@@ -41,17 +41,19 @@ BENCH_SECONDS = 20.0
 CACHE = Path(".cache") / "bench"
 
 
-def _default_input(seconds: float) -> tuple[Path, Path]:
-    """(rosbag2 MCAP directory, calibration YAML) of the cached sequence of ``seconds``."""
+def _default_input(seconds: float) -> tuple[Path, Path, Path]:
+    """(rosbag2 MCAP directory, calibration YAML, ASL folder) of the cached sequence of ``seconds``."""
     asl = cached_sequence(CACHE, seconds=seconds, seed=0, with_depth=False)
-    bag, mcap, calib = asl / "seq.bag", asl / "mcap", asl / "cam0_sensor.yaml"
+    derived = asl / f"derived_{generation_tag(asl)}"  # a regenerated sequence never meets a stale bag
+    derived.mkdir(exist_ok=True)
+    bag, mcap, calib = derived / "seq.bag", derived / "mcap", derived / "cam0_sensor.yaml"
     if not mcap.exists():
         if not bag.exists():
             write_ros1_bag(asl, bag)
         convert_to_rosbag2(bag, mcap)
     if not calib.exists():
         write_euroc_sensor_yaml(EUROC_CAM0, calib)
-    return mcap, calib
+    return mcap, calib, asl
 
 
 def ground_truth(inp: Path) -> GroundTruthTrack | None:
@@ -71,8 +73,8 @@ def bench_replay(args: argparse.Namespace) -> dict:
         inp, calib = Path(args.input), None
         gt = ground_truth(inp)
     else:
-        inp, calib = _default_input(args.seconds or BENCH_SECONDS)
-        gt = ground_truth(inp.parent)
+        inp, calib, asl = _default_input(args.seconds or BENCH_SECONDS)
+        gt = ground_truth(asl)
     overrides = {"backbone": args.backbone, "device": args.device, "mode": "init",
                  **({"calib_file": str(calib)} if calib is not None else {}), **dict(map(parse_assignment, args.param))}
     if args.backbone_delay is not None:

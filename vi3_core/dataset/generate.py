@@ -18,6 +18,7 @@ two blocks in flight), so memory does not grow with the length of the sequence.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -333,6 +334,13 @@ def generate_sequence(out_dir, *, workers: int = 2, **spec) -> Path:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
+
+
+def generation_tag(out_dir) -> str:
+    """A short digest of the parameters and generator version ``out_dir`` was generated with: files derived from the
+    sequence (bags converted from it) are cached under it, so a regenerated sequence never meets stale ones."""
+    marker = Path(out_dir) / "mav0" / "vi3_generated.json"
+    return hashlib.sha1(marker.read_bytes()).hexdigest()[:10]
 
 
 def _matches(marker: Path, params: dict) -> bool:
