@@ -466,7 +466,8 @@ def test_bench_replay_reports_speed_and_cpu_seconds_per_clip(bag3):
     """``vi3 bench replay --input ASL``: every clip processed, a realtime factor, a latency and the process CPU
     seconds per clip."""
     asl, _ = bag3
-    out = bench_replay(argparse.Namespace(input=str(asl), backbone="classical", device="cpu", repeats=1))
+    out = bench_replay(argparse.Namespace(input=str(asl), backbone="classical", device="cpu", repeats=1, realtime=False,
+                                          backbone_delay=None, param=[]))
     assert out["clips"] >= 2 and sum(out["outcomes"].values()) == out["clips"]
     assert out["realtime_factor"] > 0 and out["median_latency_ms"] > 0
     assert 0 < out["cpu_s_per_clip"] < 60

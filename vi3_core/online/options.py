@@ -28,7 +28,7 @@ class OnlineOptions:
     window_s: float = 7.0
     max_clips: int = 12
     max_bridge_s: float = 60.0
-    max_bridge_sigma_m: float = 0.5
+    max_bridge_sigma_m: float = 1.0
     consistency_p: float = 1e-3
     max_rejects: int = 3
     bg_window_s: float = 20.0
