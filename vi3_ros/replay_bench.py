@@ -5,8 +5,9 @@ sequence and converts it like a user would (ASL -> ROS 1 bag -> rosbag2 MCAP), t
 with the chosen backbone. ``realtime_factor`` = bag seconds / replay wall seconds (backbone loading excluded), so
 >= 1 means the pipeline keeps up with the recording while processing every clip. ``cpu_s_per_clip`` = process CPU
 seconds of the replay (all threads; reading, decoding and writing included) / clips: less sensitive than wall time to
-other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``), which must not
-grow with the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry (``imu_odom_rate``),
+other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``) when the replays
+end, before their odometry is read back and scored (which holds every ``~/odom/imu`` message); it must not grow with
+the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry (``imu_odom_rate``),
 so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out).
 
 ``--realtime`` replays at the recorded rate into the node's worker thread, ``--backbone-delay S`` emulates a slower
@@ -81,13 +82,16 @@ def bench_replay(args: argparse.Namespace) -> dict:
         overrides["backbone_delay"] = args.backbone_delay
     values = resolve(overrides)
     runs, cpu, odometry = [], [], []
-    for _ in range(args.repeats or 1):
-        with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
+        for i in range(args.repeats or 1):
             c0 = time.process_time()
-            runs.append(replay(inp, Path(tmp) / "out.mcap", values=values, progress=False, realtime=args.realtime))
+            runs.append(replay(inp, Path(tmp) / f"out{i}.mcap", values=values, progress=False,
+                               realtime=args.realtime))
             cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
-            if gt is not None and runs[-1].output is not None:
-                odometry.append(odometry_report(read_odometry(runs[-1].output), gt, time_offset=values["time_offset"]))
+        peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        for run in runs:
+            if gt is not None and run.output is not None:
+                odometry.append(odometry_report(read_odometry(run.output), gt, time_offset=values["time_offset"]))
     rtf = [r.realtime_factor for r in runs]
     median = int(np.argsort(rtf)[len(rtf) // 2])
     best = runs[median]
@@ -97,5 +101,5 @@ def bench_replay(args: argparse.Namespace) -> dict:
             "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
             "realtime": args.realtime, "backbone_delay": values["backbone_delay"],
             "imu_odom_rate": values["imu_odom_rate"], "input": str(inp),
-            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "peak_rss_mb": round(peak_rss_mb, 1),
             **(odometry[median] if len(odometry) == len(runs) else {})}
