@@ -201,8 +201,9 @@ class _Pool:
     """The workers of one run and the loop that feeds them: at most one task in flight per worker, a dead worker
     replaced (its task resubmitted while it has retries left), progress counted in clips."""
 
-    def __init__(self, ray: Any, jobs: list[Job], *, backbone, open_sequence, cpus: float, gpus: float, retries: int,
-                 on_progress, on_event) -> None:
+    def __init__(self, ray: Any, jobs: list[Job], *, backbone: Callable[[], Backbone],
+                 open_sequence: Callable[[str], Sequence], cpus: float, gpus: float, retries: int,
+                 on_progress: Callable[[int], None] | None, on_event: Callable[[str], None] | None) -> None:
         self.ray, self.jobs, self.retries = ray, jobs, retries
         self.on_progress, self.on_event = on_progress, on_event or (lambda line: None)
         self.actor_class = ray.remote(concurrency_groups={"progress": 1})(EvalWorker).options(
@@ -312,10 +313,10 @@ class _Pool:
         except self.ray.exceptions.RayError as err:
             where, error = "?", str(err).splitlines()[0]
         if error:
-            self.on_event(f"a replacement Ray worker could not start ({where}): {error}; {len(self.slots) - 1} "
-                          "slots left")
             self.ray.kill(self.slots[slot], no_restart=True)
             self.slots[slot] = None
+            self.on_event(f"a replacement Ray worker could not start ({where}): {error}; "
+                          f"{sum(a is not None for a in self.slots)} workers left")
             return None
         self.where[slot] = where
         self.workers.append(where)

@@ -256,8 +256,9 @@ def _backbone(args: argparse.Namespace):
 
 
 def _prepare(args: argparse.Namespace) -> tuple:
-    """Options, backbone, one ``Evaluated`` per input (opened and checked: GT, calibration, enough frames; the
-    sequence itself kept only for a single input) and the output paths, all checked before any clip runs."""
+    """Options, backbone (with --ray, the function that builds it on the workers), one ``Evaluated`` per input
+    (opened and checked: GT, calibration, enough frames; the sequence itself kept only for a single input evaluated
+    here) and the output paths, all checked before any clip runs."""
     from vi3_core.anchor import AnchorOptions
     from vi3_core.errors import DataError, Vi3Error
     from vi3_core.eval import runner
@@ -274,15 +275,16 @@ def _prepare(args: argparse.Namespace) -> tuple:
     for path in args.input:
         try:
             seq = _open(args, path)
-            clips = runner.check_sequence(seq, options=options)
+            sampled = runner.check_sequence(seq, options=options)
         except (Vi3Error, ValueError, OSError) as exc:
             problems.append(f"input {path}: {exc}")
             continue
         if seq.depth_gt.startswith("unreadable"):
             print(f"vi3 eval: {path}: depth ground truth {seq.depth_gt}; the depth metrics will be null",
                   file=sys.stderr)
-        # Several inputs are reopened one at a time when evaluated: bags are read into memory whole.
-        runs.append(Evaluated(seq.name, path, seq=seq if keep else None, clips=clips,
+        # Several inputs are reopened one at a time when evaluated (bags are read into memory whole); Ray workers
+        # open their own.
+        runs.append(Evaluated(seq.name, path, seq=seq if keep else None, clips=sampled,
                               obj={"input": path, "depth_gt": seq.depth_gt}))
     if problems:
         raise DataError("; ".join(problems))
@@ -375,7 +377,8 @@ def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, back
                   disable=not options.progress) as bar:
             ran = distributed.evaluate(
                 jobs, backbone=backbone, open_sequence=_opener(args, absolute=True),
-                cpus_per_task=args.ray_cpus_per_task or 1.0, gpus_per_task=args.ray_gpus_per_task or 0.0,
+                cpus_per_task=1.0 if args.ray_cpus_per_task is None else args.ray_cpus_per_task,
+                gpus_per_task=args.ray_gpus_per_task or 0.0,
                 on_progress=lambda n: bar.update(n - bar.n),
                 on_event=lambda line: bar.write(f"vi3 eval: {line}", file=sys.stderr))
     finally:
