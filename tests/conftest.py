@@ -1,4 +1,5 @@
-"""Shared fixtures: the ../shared folder (skipped with a reason when absent) and a cache for generated data."""
+"""Shared fixtures: the ../shared folder (skipped with a reason when absent; VI3_SHARED points to another one) and a
+cache for generated data."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
+SHARED = Path(os.environ.get("VI3_SHARED", REPO.parent / "shared"))
 CACHE = Path(os.environ.get("VI3_TEST_CACHE", REPO / ".cache" / "tests"))
 
 
@@ -19,15 +20,25 @@ def shared_dir() -> Path:
     return SHARED
 
 
+def _shared_mav0(shared_dir: Path, name: str, what: str) -> Path:
+    path = shared_dir / "data" / name / "mav0"
+    if not path.is_dir():
+        pytest.skip(f"{what} missing at {path}")
+    return path
+
+
 @pytest.fixture(scope="session")
 def euroc_fixture(shared_dir: Path) -> Path:
-    path = shared_dir / "data" / "euroc_mh01_5frames" / "mav0"
-    if not path.is_dir():
-        pytest.skip(f"real EuRoC fixture missing at {path}")
-    return path
+    return _shared_mav0(shared_dir, "euroc_mh01_5frames", "real EuRoC fixture")
 
 
 @pytest.fixture(scope="session")
 def cache_dir() -> Path:
     CACHE.mkdir(parents=True, exist_ok=True)
     return CACHE
+
+
+@pytest.fixture(scope="session")
+def euroc_v102(shared_dir: Path) -> Path:
+    """Real EuRoC V1_02_medium IMU (200 Hz, 40 s) and ground truth (40 Hz, 83 s), calibration files, no images."""
+    return _shared_mav0(shared_dir, "euroc_v102_imu_gt", "real EuRoC V1_02 IMU + GT")

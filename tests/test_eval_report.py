@@ -67,7 +67,8 @@ def test_summary_has_the_issue_keys_finite_and_paper_medians(evals) -> None:
     assert s["n_clips"] == 3 and s["n_ok"] == 2
     assert s["status_counts"] == {"ok": 2, "unobservable": 1, "rejected": 0}
     for block in ("base", "vi3"):
-        assert set(s[block]) == {"trans_rmse_m", "rot_deg", "scale_traj", "absrel", "delta125", "scale_depth"}
+        assert set(s[block]) == {"trans_rmse_m", "rot_deg", "scale_traj", "scale_fit", "absrel", "delta125",
+                                 "scale_depth"}
         assert all(np.isfinite(v) for v in s[block].values())
     assert {"gravity_err_deg", "gyro_bias_err", "v1_dir_deg", "v1_mag_err"} <= set(s["init"])
     assert s["base"]["scale_traj"] == pytest.approx(0.4) and s["base"]["scale_depth"] == pytest.approx(0.4)

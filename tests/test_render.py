@@ -58,6 +58,21 @@ def test_flight_stays_in_the_room_and_clear_of_boxes(name):
         assert np.linalg.norm(gap, axis=2).min() > 0.3
 
 
+def test_scene_grows_around_a_given_flight_volume():
+    """A recorded trajectory's box (here V1_02's, 4.4 x 5.4 x 1.4 m) gets the scene's wall, floor and ceiling
+    distances around it and proportionally more boxes, all clear of it."""
+    spec, center, extent = SCENES["room"], np.array([-0.2, 0.7, 1.6]), np.array([2.2, 2.7, 0.7])
+    scene = make_scene("room", 2, center=center, extent=extent)
+    np.testing.assert_allclose(center - extent - scene.room_lo,
+                               np.asarray(spec.center) - spec.extent - spec.room_lo)
+    np.testing.assert_allclose(scene.room_hi - center - extent,
+                               np.asarray(spec.room_hi) - spec.center - spec.extent)
+    assert len(scene.box_lo) > spec.n_boxes
+    keep_lo, keep_hi = center - extent - spec.clearance, center + extent + spec.clearance
+    assert np.all(np.any((scene.box_hi < keep_lo) | (scene.box_lo > keep_hi), axis=1))
+    assert np.all(scene.box_lo >= scene.room_lo) and np.all(scene.box_hi <= scene.room_hi)
+
+
 def _warp_error(clip, i: int, j: int) -> tuple[np.ndarray, float]:
     """|I_j(p) - I_i(pi(T_CiCj X_j(p)))| on co-visible pixels of frame j (GT depth, poses, K, T_BC)."""
     K, gt = clip.K, clip.gt
@@ -78,9 +93,8 @@ def _warp_error(clip, i: int, j: int) -> tuple[np.ndarray, float]:
     return err, ok.mean()
 
 
-def test_geometry_agrees_warping_with_gt_depth_and_poses(cache_dir):
-    seq = read_asl(cached_sequence(cache_dir, seconds=2.0, seed=0))
-    clip = make_clip(seq, np.array([10, 14, 18]))
+def _assert_geometry_agrees(clip) -> None:
+    """Frames 0, 1, 2 of ``clip`` warp onto each other with GT depth and poses; a 5 cm pose error breaks it."""
     for i, j in ((0, 1), (0, 2), (2, 0)):
         err, covisible = _warp_error(clip, i, j)
         assert covisible > 0.3
@@ -91,3 +105,17 @@ def test_geometry_agrees_warping_with_gt_depth_and_poses(cache_dir):
     bad = type(clip)(clip.stamps, clip.images, clip.K, clip.T_BC, clip.imu,
                      type(clip.gt)(shifted, clip.gt.v_WB, clip.gt.bg, clip.gt.ba, depth=clip.gt.depth))
     assert np.median(_warp_error(bad, 0, 2)[0]) > 6.0
+
+
+def test_geometry_agrees_warping_with_gt_depth_and_poses(cache_dir):
+    seq = read_asl(cached_sequence(cache_dir, seconds=2.0, seed=0))
+    _assert_geometry_agrees(make_clip(seq, np.array([10, 14, 18])))
+
+
+def test_geometry_agrees_along_a_real_euroc_trajectory(euroc_v102, cache_dir):
+    """Frames rendered along V1_02's ground truth (10 s in, flying at about 1 m/s) warp onto each other with the GT
+    depth and the GT body poses at their stamps times cam0's T_BS: the rendered camera is where the GT says."""
+    seq = read_asl(cached_sequence(cache_dir, seconds=0.5, from_euroc=euroc_v102, start_s=10.0))
+    clip = make_clip(seq, np.array([0, 4, 8]))
+    assert np.linalg.norm(clip.gt.T_WB[2, :3, 3] - clip.gt.T_WB[0, :3, 3]) > 0.2  # real parallax
+    _assert_geometry_agrees(clip)

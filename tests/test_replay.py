@@ -33,7 +33,7 @@ from msg_adapters.stamps import ns_to_stamp, stamp_to_ns
 from msg_adapters.types import jazzy_types
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
-from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
 from vi3_core.eval.metrics import scale_traj
 from vi3_ros.cli import main as vi3_main
 from vi3_ros.io.convert import convert_to_rosbag2
@@ -65,7 +65,7 @@ def _publish_atomically(dst: Path, build: Callable[[Path], None]) -> Path:
 def _converted_bag(cache_dir: Path, *, seconds: float, seed: int) -> tuple[Path, Path]:
     """(ASL folder, rosbag2 MCAP directory) of a generated sequence, cached."""
     asl = cached_sequence(cache_dir, seconds=seconds, seed=seed, with_depth=False)
-    folder = cache_dir / f"replay_{asl.name}"
+    folder = cache_dir / f"replay_{asl.name}_{generation_tag(asl)}"
     folder.mkdir(exist_ok=True)
     bag = _publish_atomically(folder / "seq.bag", lambda p: write_ros1_bag(asl, p))
     return asl, _publish_atomically(folder / "mcap", lambda p: convert_to_rosbag2(bag, p))
@@ -466,7 +466,8 @@ def test_bench_replay_reports_speed_and_cpu_seconds_per_clip(bag3):
     """``vi3 bench replay --input ASL``: every clip processed, a realtime factor, a latency and the process CPU
     seconds per clip."""
     asl, _ = bag3
-    out = bench_replay(argparse.Namespace(input=str(asl), backbone="classical", device="cpu", repeats=1))
+    out = bench_replay(argparse.Namespace(input=str(asl), backbone="classical", device="cpu", repeats=1, realtime=False,
+                                          backbone_delay=None, param=[]))
     assert out["clips"] >= 2 and sum(out["outcomes"].values()) == out["clips"]
     assert out["realtime_factor"] > 0 and out["median_latency_ms"] > 0
     assert 0 < out["cpu_s_per_clip"] < 60

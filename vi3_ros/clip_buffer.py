@@ -78,7 +78,7 @@ class RawClip:
     index: running clip number (0, 1, ...); stamps: [n] float64 s in IMU time; stamps_ns: [n] the frames' original
     message stamps (camera time, int ns, for the output headers); images: the n raw (distorted) frames as given;
     imu: samples covering [stamps[0], stamps[-1]] plus ``imu_margin`` samples each side; imu_history: samples from
-    ``history`` s before stamps[0] to the end of ``imu`` (None when history is 0).
+    the last one at or before ``history`` s before stamps[0] to the end of ``imu`` (None when history is 0).
     """
 
     index: int
@@ -231,6 +231,14 @@ class ClipBuffer:
         out += self._expire(t)
         return out + self._release()
 
+    def imu_since(self, t: float) -> ImuSamples | None:
+        """A copy of the buffered IMU from the last sample at or before ``t`` s (IMU time; from the oldest when none
+        is) to the newest; None while the buffer is empty."""
+        times = self._imu.t
+        if not len(times):
+            return None
+        return self._imu.samples(max(int(np.searchsorted(times, t, side="right")) - 1, 0), len(times))
+
     def last_stamp_ns(self) -> int:
         """The newest message stamp taken (camera or IMU, int ns; 0 before any)."""
         return max(self._last_image_ns or 0, self._last_imu_ns or 0)
@@ -298,7 +306,7 @@ class ClipBuffer:
                 continue
             hist = None
             if self.options.history > 0:
-                h0 = min(i0, int(np.searchsorted(t, t0 - self.options.history, side="left")))
+                h0 = min(i0, max(int(np.searchsorted(t, t0 - self.options.history, side="right")) - 1, 0))
                 hist = self._imu.samples(h0, i1)
             self.clips += 1
             out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images, self._imu.samples(i0, i1), hist))

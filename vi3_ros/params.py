@@ -108,6 +108,8 @@ PARAMS: tuple[Param, ...] = (
     Param("publish_odom_tf", False, "publish odom_frame -> base_frame on /tf at each clip's last frame (online only)"),
     Param("outputs_in_odom", False, "express ~/poses and ~/points in odom_frame instead of clip_frame (online only; "
           "a clip that is not chained keeps clip_frame)"),
+    Param("imu_odom_rate", 200.0, "Hz; ~/odom/imu: the last chained state propagated with every IMU sample, published "
+          "at most this often (every sample at the IMU's rate or above); 0: off (online only)", range=(0.0, 10000.0)),
     Param("path_max_poses", 5000, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
     _option("online_window", OnlineOptions, "window_s", "s; clips starting within this of the newest are fitted "
             "jointly (gravity and biases shared, velocities tied through the IMU, one scale per clip); older ones are "
@@ -147,6 +149,8 @@ PARAMS: tuple[Param, ...] = (
     Param("checkpoint", "", "local checkpoint path or Hugging Face id; empty: the backbone's default"),
     Param("mode", "init", "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
           "(test-time refinement)", choices=MODES),
+    Param("backbone_delay", 0.0, "s added to every clip's processing before the backbone, to emulate a slower model "
+          "(testing: what a busy worker drops, how the odometry chains across the gaps)", range=(0.0, 3600.0)),
     _option("ttr_steps", AnchorOptions, "steps", "TTR optimisation steps", range=(1, 100000)),
     _option("scale_solver", InitOptions, "scale_solver", "eiv: backbone positions regressed on the IMU with an error "
             "model, a scale sigma per clip; tls / ols: the paper's Eq. S (no error model; independent clips only)",

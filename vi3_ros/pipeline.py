@@ -24,7 +24,12 @@ clip_frame`` at the clip's last frame stamp.
 
 With ``online`` (``vi3_core.online``), each clip's initialisation takes the priors carried from the previous clips,
 and the clips are chained into one continuous odom trajectory: ``~/odom``, ``~/path`` and TF ``odom_frame ->
-base_frame`` (``publish_odom_tf``); the status names the priors used, dropped (with the reason) and resets.
+base_frame`` (``publish_odom_tf``); the status names the priors used, dropped (with the reason) and resets. Between
+clips, ``~/odom/imu`` carries the last chained state propagated with every IMU sample (``vi3_ros.imu_odom``,
+``imu_odom_rate``), restarted from each newly chained clip.
+
+``backbone_delay`` pauses every clip's processing before the backbone (a slower model, for testing); ``close`` ends
+the pause.
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ from vi3_core.init.options import InitOptions
 from vi3_core.online import ChainedClip, OnlineEstimator, OnlineOptions
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
+from vi3_ros.imu_odom import ImuOdometry
 from vi3_ros.params import options
 from vi3_ros.worker import Worker
 
@@ -79,6 +85,7 @@ OUTPUTS: dict[str, Output] = {
     "tf": Output("/tf", "tf2_msgs/msg/TFMessage"),
     "odom": Output("~/odom", "nav_msgs/msg/Odometry"),
     "path": Output("~/path", "nav_msgs/msg/Path"),
+    "odom_imu": Output("~/odom/imu", "nav_msgs/msg/Odometry"),
 }
 STATUS_NAME = "vi3: clip"
 DIAG_NAME = "vi3: pipeline"
@@ -248,8 +255,13 @@ class Pipeline:
         self._anchor_options = options(AnchorOptions, values)
         self._init_options = options(InitOptions, values)
         self._on_report = on_report
-        self.online = OnlineEstimator(options=options(OnlineOptions, values), init_options=self._init_options) \
+        online_options = options(OnlineOptions, values)
+        self.online = OnlineEstimator(options=online_options, init_options=self._init_options) \
             if values["online"] else None
+        self.imu_odom = ImuOdometry(values, init_options=self._init_options, max_tau_s=online_options.max_bridge_s,
+                                    types=types, publish=self._publish) \
+            if values["online"] and values["imu_odom_rate"] > 0 else None
+        self._stopping = threading.Event()  # set by close(): ends a backbone_delay early
         self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
         self._lock = threading.Lock()  # guards the buffer and counters (executor thread vs worker thread)
         # Dropped input messages by reason: since the last clip status, in this diagnostics period, and the reasons
@@ -302,6 +314,8 @@ class Pipeline:
         None."""
         with self._lock:
             events = self.buffer.add_imu(stamp_ns, gyro, accel, orientation)
+        if self.imu_odom is not None:  # before a clip this sample completes is processed: it corrects the next one
+            self.imu_odom.add(stamp_ns, gyro, accel)
         self._dispatch(events)
 
     def add_camera_info(self, msg: Any) -> None:
@@ -322,6 +336,7 @@ class Pipeline:
         s to finish the clip it is processing (whose outputs are then no longer published: the node is shutting
         down), a waiting clip is discarded."""
         self.closing = True
+        self._stopping.set()
         self.worker.stop(timeout)
 
     def _dispatch(self, events: list[RawClip | Drop]) -> None:
@@ -363,6 +378,8 @@ class Pipeline:
             init = InitResult(status=InitStatus.REJECTED, reason=reason)
             self._publish_status(raw, init, None, "none", time.perf_counter() - t_start)
             return
+        if self.values["backbone_delay"] > 0 and self._stopping.wait(self.values["backbone_delay"]):
+            return  # closing: the clip's outputs would be discarded anyway
         refine = self.values["mode"] != "init"
 
         def on_init(result: AnchorResult) -> None:
@@ -381,7 +398,13 @@ class Pipeline:
             self._publish_geometry(raw, result.geometry, prefix="", T_OC1=T_OC1)
         if chained is not None:
             self._publish_odom(raw, clip, chained)
+            if self.imu_odom is not None:
+                self.imu_odom.restart(online.state, self._imu_since)
         self._publish_status(raw, result.init, result, result.mode if result.init.ok else "none", latency)
+
+    def _imu_since(self, t: float) -> Any:
+        with self._lock:
+            return self.buffer.imu_since(t)
 
     def _on_error(self, raw: RawClip, exc: BaseException) -> None:
         self._report_skip(raw.index, "error", f"{type(exc).__name__}: {exc}", int(raw.stamps_ns[-1]), Level.ERROR)
@@ -462,12 +485,19 @@ class Pipeline:
         reason = init.reason if not init.ok else (result.status or "ok")
         alpha = result.alpha if result is not None else float("nan")
         values = {"clip": raw.index, "result": kind, "init_status": init.status.value, "reason": reason,
-                  "scale": f"{init.scale:.6g}", "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
+                  "scale": f"{init.scale:.6g}", "scale_sigma": f"{init.scale_sigma:.3g}",
+                  "scale_rel_sigma": f"{init.diagnostics.get('scale_rel_sigma', float('nan')):.3g}",
+                  "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
                   "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
-                  "bg": _vec(init.bg), "t_first": f"{raw.stamps[0]:.9f}", "t_last": f"{raw.stamps[-1]:.9f}",
+                  "bg": _vec(init.bg), "ba": _vec(init.ba), "t_first": f"{raw.stamps[0]:.9f}",
+                  "t_last": f"{raw.stamps[-1]:.9f}",
                   "input_drops": drops, "latency_ms": f"{latency * 1e3:.1f}"}
         if "online" in init.diagnostics:
             values["online"] = init.diagnostics["online"]
+            resets = self.online.trajectory.resets
+            values["odom_segment"] = len(resets)  # 0: the first; each reset starts one (its first frame, IMU time)
+            if resets:
+                values["odom_segment_start"] = f"{resets[-1]:.9f}"
         if result is not None and kind != "init":
             values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                            for k, a in sorted(result.losses.items()) if np.asarray(a).size})
@@ -501,6 +531,8 @@ class Pipeline:
                       "worker_replaced": self.worker.replaced, "worker_errors": self.worker.errors}
             values.update({f"outcome_{k}": n for k, n in sorted(self.outcomes.items())})
             values.update({f"drop_{k}": n for k, n in sorted((self.buffer.counts + self.message_drops).items())})
+        if self.imu_odom is not None:
+            values["imu_odom"] = self.imu_odom.status
         return DiagStatus(level, DIAG_NAME, message, self.values["clip_frame"], values)
 
     def publish_diagnostics(self, stamp_ns: int) -> None:

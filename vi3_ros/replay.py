@@ -1,8 +1,12 @@
 """Bag replay: drive the node's pipeline (same ClipBuffer, worker and anchoring) over a recorded sequence in bag
 time and write what the node would publish into a rosbag2 MCAP.
 
-Deterministic: the worker runs synchronously, so every clip is processed, and output log times are the header
-stamps (camera time) rather than wall-clock times; the node's diagnostics timer runs in bag time. Input: anything
+Deterministic by default: the worker runs synchronously, so every clip is processed, and output log times are the
+header stamps (camera time) rather than wall-clock times; the node's diagnostics timer runs in bag time. With
+``realtime`` the input is fed at its recorded rate into the node's latest-wins worker thread instead, so the output is
+what the node would publish on this machine, clips the busy worker could not take included (``skipped:
+worker_busy``); log times are then the replay clock (bag time as it runs) at which each message was published, so a
+player shows each result's latency. Input: anything
 ``vi3_ros.io.reader.iter_events`` accepts (ASL folder, ``vi3 make-bag`` folder, ROS 1 bag, rosbag2 directory or
 ``.mcap``), read once; bags may also carry ``sensor_msgs/CameraInfo`` on ``camera_info_topic`` and ``/tf_static``
 (with ``use_tf_static``), which come in the same stream and go to the Pipeline exactly as the node's callbacks do.
@@ -20,8 +24,10 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -51,6 +57,8 @@ from vi3_ros.io.reader import (
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import OUTPUTS, ClipReport, Pipeline, make_pipeline
+
+REALTIME_STOP_WAIT_S = 0.5  # s an interrupted realtime replay waits for the clip in the worker, as the node's shutdown
 
 
 def topic_name(topic: str, node: str = NODE_NAME) -> str:
@@ -91,7 +99,11 @@ class McapSink:
     """OutputSink writing CDR messages of the rosbags Jazzy typestore into a rosbag2 MCAP under a hidden temporary
     folder beside ``path`` (an ``OUT.mcap`` file, or a rosbag2 directory for any other name). ``commit`` moves the
     result to ``path`` (replacing it with ``force``); ``abandon`` keeps what was written at ``partial_path(path)``,
-    or nothing when nothing was written. Either way the temporary folder is removed."""
+    or nothing when nothing was written. Either way the temporary folder is removed.
+
+    Thread-safe (the realtime replay's worker thread publishes beside the input thread); a message that arrives after
+    ``commit`` or ``abandon`` is discarded, as the node discards the outputs of a clip still running at shutdown.
+    ``clock``: when set, a function giving the log time (ns) of published outputs; else their header stamps."""
 
     def __init__(self, path: str | Path, *, types: MessageTypes, force: bool = False) -> None:
         self.path = Path(path)
@@ -111,18 +123,30 @@ class McapSink:
             raise
         self._connections: dict[str, Any] = {}
         self.counts: Counter[str] = Counter()
+        self.clock: Callable[[], int] | None = None
+        self._lock = threading.Lock()
+        self._closed = False
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
         out = OUTPUTS[key]
-        self.write(topic_name(out.topic), out.msgtype, msg, stamp_ns)
+        self.write(topic_name(out.topic), out.msgtype, msg, stamp_ns if self.clock is None else self.clock())
 
     def write(self, topic: str, msgtype: str, msg: Any, stamp_ns: int) -> None:
-        conn = self._connections.get(topic)
-        if conn is None:
-            conn = self._connections[topic] = self._writer.add_connection(topic, msgtype,
-                                                                          typestore=self.types.typestore)
-        self._writer.write(conn, int(stamp_ns), self.types.typestore.serialize_cdr(msg, msgtype))
-        self.counts[topic] += 1
+        data = self.types.typestore.serialize_cdr(msg, msgtype)
+        with self._lock:
+            if self._closed:
+                return
+            conn = self._connections.get(topic)
+            if conn is None:
+                conn = self._connections[topic] = self._writer.add_connection(topic, msgtype,
+                                                                              typestore=self.types.typestore)
+            self._writer.write(conn, int(stamp_ns), data)
+            self.counts[topic] += 1
+
+    def _close(self) -> None:
+        with self._lock:
+            self._closed = True
+            self._writer.close()
 
     def _result(self) -> Path:
         """The written output inside the temporary folder: its MCAP file (``OUT.mcap``) or the rosbag2 folder."""
@@ -131,7 +155,7 @@ class McapSink:
     def commit(self) -> Path:
         """Close the bag and move it to ``path``; OSError (e.g. a full disk) leaves nothing behind."""
         try:
-            self._writer.close()
+            self._close()
             _remove(self.path)
             os.replace(self._result(), self.path)
         finally:
@@ -143,7 +167,7 @@ class McapSink:
         nothing was written or it cannot be closed into a readable bag."""
         kept = None
         try:
-            self._writer.close()
+            self._close()
             if sum(self.counts.values()):
                 kept = partial_path(self.path)
                 _remove(kept)
@@ -182,7 +206,8 @@ class ReplaySummary:
     drops: dropped input messages and clips by reason; latencies_ms: processing time per processed clip; wall_s:
     replay wall time (backbone loading excluded); bag_s: span of the input's stamps; frames: camera frames read
     (dropped ones included); written: messages per output topic; output: where they are (``--output``, or the
-    partial output when no clip produced a result)."""
+    partial output when no clip produced a result); realtime: fed at the recorded rate (``feed_lag_ms``: the most the
+    feeding fell behind that rate, reading and decoding the input)."""
 
     clips: int = 0
     outcomes: Counter = field(default_factory=Counter)
@@ -193,6 +218,8 @@ class ReplaySummary:
     frames: int = 0
     written: Counter = field(default_factory=Counter)
     output: Path | None = None
+    realtime: bool = False
+    feed_lag_ms: float = 0.0
 
     @property
     def realtime_factor(self) -> float:
@@ -226,7 +253,8 @@ class ReplaySummary:
                 "median_latency_ms": num(self.median_latency_ms, 1), "wall_s": round(self.wall_s, 3),
                 "bag_s": round(self.bag_s, 3), "realtime_factor": num(self.realtime_factor, 3),
                 "written": dict(sorted(self.written.items())),
-                "output": None if self.output is None else str(self.output)}
+                "output": None if self.output is None else str(self.output),
+                **({"realtime": True, "feed_lag_ms": round(self.feed_lag_ms, 1)} if self.realtime else {})}
 
     def text(self) -> str:
         d = self.as_dict()
@@ -249,6 +277,29 @@ def input_calib(path: Path) -> Path | None:
         sensor = find_mav0(source) / "cam0" / "sensor.yaml"
         return sensor if sensor.is_file() else None
     return find_calib(source)
+
+
+class _ReplayClock:
+    """Bag time as the realtime replay runs: from the first stamp fed (``wait_until``), it advances with the
+    monotonic wall clock. ``lag_ns``: the most a stamp was fed after its time."""
+
+    def __init__(self) -> None:
+        self._t0: int | None = None
+        self._w0 = 0
+        self.lag_ns = 0
+
+    def wait_until(self, t_ns: int) -> None:
+        """Sleep until bag time ``t_ns`` (ns)."""
+        if self._t0 is None:
+            self._t0, self._w0 = t_ns, time.monotonic_ns()
+        ahead = t_ns - self.now_ns()
+        if ahead > 0:
+            time.sleep(ahead * 1e-9)
+        else:
+            self.lag_ns = max(self.lag_ns, -ahead)
+
+    def now_ns(self) -> int:
+        return self._t0 + time.monotonic_ns() - self._w0
 
 
 @dataclass
@@ -315,8 +366,9 @@ def topic_requests(values: dict[str, Any], image_topic: str | None = None,
 
 def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any], copy_inputs: bool = False,
            progress: bool = True, force: bool = False, image_topic: str | None = None,
-           imu_topic: str | None = None) -> ReplaySummary:
-    """Replay ``input_path`` through the pipeline configured by parameter ``values``; write outputs to ``output``.
+           imu_topic: str | None = None, realtime: bool = False) -> ReplaySummary:
+    """Replay ``input_path`` through the pipeline configured by parameter ``values``; write outputs to ``output``;
+    ``realtime``: at the recorded rate into the node's worker thread (see the module docstring).
 
     Without ``calib_file`` the input's own calibration (``input_calib``) is used, unless CameraInfo or /tf_static
     are to be read from the input. Topics: ``topic_requests``. The output is written beside ``output`` and moved
@@ -330,10 +382,10 @@ def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any]
         found = input_calib(input_path)
         values = {**values, "calib_file": str(found) if found is not None else ""}
     image, imu = topic_requests(values, image_topic, imu_topic)
-    summary = ReplaySummary()
+    summary = ReplaySummary(realtime=realtime)
     sink = McapSink(output, types=types, force=force)
     try:
-        pipeline = make_pipeline(values, sink=sink, types=types, synchronous=True,
+        pipeline = make_pipeline(values, sink=sink, types=types, synchronous=not realtime,
                                  on_report=lambda r: _record_latency(summary, r))
         start = time.perf_counter()  # model loading is not part of the replay's speed
         _run(pipeline, sink, iter_events(input_path, image=image, imu=imu,
@@ -368,25 +420,35 @@ def _record_latency(summary: ReplaySummary, report: ClipReport) -> None:
 
 def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, values: dict[str, Any], *,
          copy_inputs: bool, progress: bool, name: str) -> None:
-    """Feed every input event to the pipeline, the diagnostics timer in bag time; close the pipeline and publish
-    the final counts. Sets ``summary.frames`` and ``summary.bag_s``."""
+    """Feed every input event to the pipeline, the diagnostics timer in bag time (realtime: at the recorded rate, then
+    wait for the worker to finish its clips); publish the final counts and close the pipeline (also when interrupted:
+    a clip still running then publishes nothing). Sets ``summary.frames``, ``summary.bag_s`` and
+    ``summary.feed_lag_ms``."""
     t_first = t_last = None
     timer = _BagTimer(round(values["diagnostics_period"] * 1e9))
-    with tqdm(desc=f"replay {name}", unit=" frames", disable=not progress, leave=False) as bar:
-        for event in events:
-            if isinstance(event, ImageEvent | ImuEvent):
-                t_first = event.t_ns if t_first is None else t_first
-                t_last = event.t_ns
-                if copy_inputs:
-                    _copy_input(sink, event, values)
-            _feed(pipeline, event)
-            if t_last is not None and timer.due(t_last):
-                pipeline.publish_diagnostics(t_last)
-            is_frame = isinstance(event, ImageEvent) or (isinstance(event, DropEvent) and
-                                                         event.reason.startswith("image"))
-            summary.frames += is_frame
-            bar.update(is_frame)
-    pipeline.close()
-    if t_last is not None:  # the final counts
-        pipeline.publish_diagnostics(t_last)
+    clock = _ReplayClock() if summary.realtime else None
+    try:
+        with tqdm(desc=f"replay {name}", unit=" frames", disable=not progress, leave=False) as bar:
+            for event in events:
+                if isinstance(event, ImageEvent | ImuEvent):
+                    t_first = event.t_ns if t_first is None else t_first
+                    t_last = event.t_ns
+                    if clock is not None:
+                        clock.wait_until(t_last)
+                        sink.clock = clock.now_ns
+                    if copy_inputs:
+                        _copy_input(sink, event, values)
+                _feed(pipeline, event)
+                if t_last is not None and timer.due(t_last):
+                    pipeline.publish_diagnostics(t_last)
+                is_frame = isinstance(event, ImageEvent) or (isinstance(event, DropEvent) and
+                                                             event.reason.startswith("image"))
+                summary.frames += is_frame
+                bar.update(is_frame)
+        pipeline.worker.wait_idle()  # realtime: the clips the node would still process (replay: nothing left)
+        if t_last is not None:  # the final counts
+            pipeline.publish_diagnostics(t_last)
+    finally:
+        pipeline.close(timeout=REALTIME_STOP_WAIT_S)
     summary.bag_s = 0.0 if t_first is None else (t_last - t_first) * 1e-9
+    summary.feed_lag_ms = 0.0 if clock is None else clock.lag_ns * 1e-6

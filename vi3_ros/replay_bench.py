@@ -6,7 +6,14 @@ with the chosen backbone. ``realtime_factor`` = bag seconds / replay wall second
 >= 1 means the pipeline keeps up with the recording while processing every clip. ``cpu_s_per_clip`` = process CPU
 seconds of the replay (all threads; reading, decoding and writing included) / clips: less sensitive than wall time to
 other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``), which must not
-grow with the bag's length (``--seconds``).
+grow with the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry (``imu_odom_rate``),
+so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out).
+
+``--realtime`` replays at the recorded rate into the node's worker thread, ``--backbone-delay S`` emulates a slower
+model: the clips the busy worker drops show in ``outcomes`` (``skipped:worker_busy``). With ground truth (the
+generated input, or an input with an ASL folder: a make-bag folder's ``asl/``) the report adds the odometry the
+replay wrote, scored against it (``vi3_ros.replay_odom``: the chained ``~/path`` per odom segment, window resets,
+``~/odom/imu`` rate and its jumps at corrections) from the median run.
 """
 
 from __future__ import annotations
@@ -19,48 +26,76 @@ from pathlib import Path
 
 import numpy as np
 
+from vi3_core.dataset.asl import find_mav0, read_groundtruth
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
-from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
+from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
+from vi3_core.dataset.sequence import GroundTruthTrack
+from vi3_core.errors import DataError
 from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.ros1 import write_ros1_bag
-from vi3_ros.params import resolve
+from vi3_ros.params import parse_assignment, resolve
 from vi3_ros.replay import replay
+from vi3_ros.replay_odom import odometry_report, read_odometry
 
 BENCH_SECONDS = 20.0
 CACHE = Path(".cache") / "bench"
 
 
-def _default_input(seconds: float) -> tuple[Path, Path]:
-    """(rosbag2 MCAP directory, calibration YAML) of the cached sequence of ``seconds``."""
+def _default_input(seconds: float) -> tuple[Path, Path, Path]:
+    """(rosbag2 MCAP directory, calibration YAML, ASL folder) of the cached sequence of ``seconds``."""
     asl = cached_sequence(CACHE, seconds=seconds, seed=0, with_depth=False)
-    bag, mcap, calib = asl / "seq.bag", asl / "mcap", asl / "cam0_sensor.yaml"
+    derived = asl / f"derived_{generation_tag(asl)}"  # a regenerated sequence never meets a stale bag
+    derived.mkdir(exist_ok=True)
+    bag, mcap, calib = derived / "seq.bag", derived / "mcap", derived / "cam0_sensor.yaml"
     if not mcap.exists():
         if not bag.exists():
             write_ros1_bag(asl, bag)
         convert_to_rosbag2(bag, mcap)
     if not calib.exists():
         write_euroc_sensor_yaml(EUROC_CAM0, calib)
-    return mcap, calib
+    return mcap, calib, asl
+
+
+def ground_truth(inp: Path) -> GroundTruthTrack | None:
+    """The ground truth of an input that is (or holds, as ``asl/``) an ASL folder with one; else None."""
+    for folder in (inp, inp / "asl"):
+        try:
+            return read_groundtruth(find_mav0(folder))
+        except DataError:
+            continue
+    return None
 
 
 def bench_replay(args: argparse.Namespace) -> dict:
-    """Replay the input ``args.repeats`` times (default 1); median realtime factor and per-clip latency."""
+    """Replay the input ``args.repeats`` times (default 1); median realtime factor and per-clip latency, and the
+    odometry of the median run against ground truth where there is one."""
     if args.input:
         inp, calib = Path(args.input), None
+        gt = ground_truth(inp)
     else:
-        inp, calib = _default_input(args.seconds or BENCH_SECONDS)
-    values = resolve({"backbone": args.backbone, "device": args.device, "mode": "init",
-                      **({"calib_file": str(calib)} if calib is not None else {})})
-    runs, cpu = [], []
+        inp, calib, asl = _default_input(args.seconds or BENCH_SECONDS)
+        gt = ground_truth(asl)
+    overrides = {"backbone": args.backbone, "device": args.device, "mode": "init",
+                 **({"calib_file": str(calib)} if calib is not None else {}), **dict(map(parse_assignment, args.param))}
+    if args.backbone_delay is not None:
+        overrides["backbone_delay"] = args.backbone_delay
+    values = resolve(overrides)
+    runs, cpu, odometry = [], [], []
     for _ in range(args.repeats or 1):
         with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
             c0 = time.process_time()
-            runs.append(replay(inp, Path(tmp) / "out.mcap", values=values, progress=False))
+            runs.append(replay(inp, Path(tmp) / "out.mcap", values=values, progress=False, realtime=args.realtime))
             cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
+            if gt is not None and runs[-1].output is not None:
+                odometry.append(odometry_report(read_odometry(runs[-1].output), gt, time_offset=values["time_offset"]))
     rtf = [r.realtime_factor for r in runs]
-    best = runs[int(np.argsort(rtf)[len(rtf) // 2])]
+    median = int(np.argsort(rtf)[len(rtf) // 2])
+    best = runs[median]
     return {"realtime_factor": round(float(np.median(rtf)), 3), "cpu_s_per_clip": round(float(np.median(cpu)), 4),
             "clips": best.clips,
             "median_latency_ms": round(best.median_latency_ms, 1), "bag_s": round(best.bag_s, 3),
             "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
-            "input": str(inp), "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+            "realtime": args.realtime, "backbone_delay": values["backbone_delay"],
+            "imu_odom_rate": values["imu_odom_rate"], "input": str(inp),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            **(odometry[median] if len(odometry) == len(runs) else {})}

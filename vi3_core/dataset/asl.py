@@ -274,26 +274,89 @@ def sequence_name(mav0: Path) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- writing
-def _write_rows(path: Path, header: str, ns: np.ndarray, values: np.ndarray | None = None,
-                names: list[str] | None = None) -> None:
-    """One csv row per stamp: ns, then ``values`` (shortest repr, exact round trip) or ``names``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+def _rows(ns: np.ndarray, values: np.ndarray | None = None, names: list[str] | None = None) -> str:
+    """csv rows, one per stamp: ns, then ``values`` (shortest repr, exact round trip) or ``names``."""
     cols = [np.asarray(ns, dtype=np.int64).astype(str)]
     if values is not None:
-        cols += [np.array([repr(float(x)) for x in col]) for col in np.asarray(values, dtype=np.float64).T]
+        cols += [np.array([repr(float(x)) for x in col], dtype=object) for col in np.asarray(values, np.float64).T]
     if names is not None:
         cols.append(np.asarray(names))
-    lines = [",".join(r) for r in zip(*cols)]
-    path.write_text(header + "\n" + "".join(line + "\n" for line in lines))
+    return "".join(",".join(r) + "\n" for r in zip(*cols))
 
 
-def write_camera(mav0: Path, calib: CameraCalib, ns: np.ndarray, *, camera: str = "cam0") -> Path:
-    """cam0/data.csv and cam0/sensor.yaml; returns the image folder ``cam0/data`` (created)."""
-    cam_dir = mav0 / camera
-    (cam_dir / "data").mkdir(parents=True, exist_ok=True)
-    _write_rows(cam_dir / "data.csv", CAM_HEADER, ns, names=[f"{k}.png" for k in np.asarray(ns).tolist()])
-    write_euroc_sensor_yaml(calib, cam_dir / "sensor.yaml", comment="VI3 rendered camera (EuRoC cam0 model)")
-    return cam_dir / "data"
+class AslWriter:
+    """Writes the csv files of an ASL folder a block of rows at a time, in stamp order.
+
+    Creates ``cam0/data/``, ``imu0/``, ``state_groundtruth_estimate0/`` (and ``depth0/data/`` when ``with_depth``)
+    with each csv's header; ``imu``, ``groundtruth`` and ``frames`` append rows. Images go to ``image_dir`` and
+    depth maps to ``depth_dir`` through ``write_image``/``write_depth``; the sensor.yaml files are written apart
+    (``write_sensor_yaml`` or copies of a recording's own).
+    """
+
+    def __init__(self, mav0: Path, *, with_depth: bool) -> None:
+        self.mav0 = Path(mav0)
+        self.image_dir = self.mav0 / "cam0" / "data"
+        self.depth_dir = self.mav0 / "depth0" / "data" if with_depth else None
+        self._csv = {"cam": (self.mav0 / "cam0" / "data.csv", CAM_HEADER),
+                     "imu": (self.mav0 / "imu0" / "data.csv", IMU_HEADER),
+                     "gt": (self.mav0 / "state_groundtruth_estimate0" / "data.csv", GT_HEADER)}
+        if self.depth_dir is not None:
+            self._csv["depth"] = (self.mav0 / "depth0" / "data.csv", CAM_HEADER)
+        for folder in (self.image_dir, self.depth_dir):
+            if folder is not None:
+                folder.mkdir(parents=True, exist_ok=True)
+        for path, header in self._csv.values():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(header + "\n")
+
+    def _append(self, key: str, text: str) -> None:
+        with self._csv[key][0].open("a") as f:
+            f.write(text)
+
+    def imu(self, ns: np.ndarray, imu: ImuSamples) -> None:
+        """imu0/data.csv rows: gyro then accel."""
+        self._append("imu", _rows(ns, np.concatenate([imu.gyro, imu.accel], 1)))
+
+    def groundtruth(self, ns: np.ndarray, T_WB: np.ndarray, v_WB: np.ndarray, bg: np.ndarray,
+                    ba: np.ndarray) -> None:
+        """state_groundtruth_estimate0/data.csv rows: p, q (w x y z), v, gyro bias, accel bias."""
+        q = so3.R_to_quat(T_WB[:, :3, :3])[:, [3, 0, 1, 2]]
+        self._append("gt", _rows(ns, np.concatenate([T_WB[:, :3, 3], q, v_WB, bg, ba], 1)))
+
+    def frames(self, ns: np.ndarray) -> None:
+        """cam0/data.csv (and depth0/data.csv) rows naming ``<ns>.png``."""
+        names = [f"{k}.png" for k in np.asarray(ns).tolist()]
+        for key in ("cam", "depth"):
+            if key in self._csv:
+                self._append(key, _rows(ns, names=names))
+
+
+def write_sensor_yaml(mav0: Path, calib: CameraCalib, noise: ImuNoise, *, rate_hz: float = 200.0) -> None:
+    """cam0/, imu0/ (noise model) and state_groundtruth_estimate0/ sensor.yaml, and body.yaml, of a simulation."""
+    write_euroc_sensor_yaml(calib, mav0 / "cam0" / "sensor.yaml", comment="VI3 rendered camera (EuRoC cam0 model)")
+    doc = {"sensor_type": "imu", "comment": "VI3 simulated IMU (EuRoC ADIS16448 noise model)",
+           "T_BS": _IDENTITY_T_BS, "rate_hz": rate_hz,
+           "gyroscope_noise_density": noise.gyro_noise_density, "gyroscope_random_walk": noise.gyro_random_walk,
+           "accelerometer_noise_density": noise.accel_noise_density,
+           "accelerometer_random_walk": noise.accel_random_walk}
+    _yaml(mav0 / "imu0" / "sensor.yaml", doc)
+    _yaml(mav0 / "state_groundtruth_estimate0" / "sensor.yaml",
+          {"sensor_type": "visual-inertial", "comment": "VI3 exact simulated body state (no estimation).",
+           "T_BS": _IDENTITY_T_BS})
+    (mav0 / "body.yaml").write_text("comment: VI3 simulated drone (EuRoC body frame = IMU frame)\n")
+
+
+def write_depth_yaml(mav0: Path, K: np.ndarray) -> None:
+    """depth0/sensor.yaml: how to read the depth PNGs (scale, the undistorted pinhole K they belong to)."""
+    _yaml(mav0 / "depth0" / "sensor.yaml",
+          {"sensor_type": "depth", "comment": "Exact ground-truth z-depth of the undistorted cam0 image "
+           f"(pinhole K below), uint16 PNG, metres x {DEPTH_SCALE:g}, 0 = no depth.",
+           "depth_scale": DEPTH_SCALE, "camera": "cam0", "undistorted_K": np.asarray(K).reshape(-1).tolist()})
+
+
+def _yaml(path: Path, doc: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
 
 
 def write_image(folder: Path, ns: int, image: np.ndarray) -> None:
@@ -304,45 +367,9 @@ def write_image(folder: Path, ns: int, image: np.ndarray) -> None:
         raise DataError(f"{folder}: could not write {int(ns)}.png")
 
 
-def write_depth_meta(mav0: Path, ns: np.ndarray, K: np.ndarray) -> Path:
-    """depth0/data.csv and depth0/sensor.yaml; returns the depth folder ``depth0/data`` (created)."""
-    folder = mav0 / "depth0" / "data"
-    folder.mkdir(parents=True, exist_ok=True)
-    _write_rows(mav0 / "depth0" / "data.csv", CAM_HEADER, ns, names=[f"{k}.png" for k in np.asarray(ns).tolist()])
-    doc = {"sensor_type": "depth", "comment": "Exact ground-truth z-depth of the undistorted cam0 image "
-           f"(pinhole K below), uint16 PNG, metres x {DEPTH_SCALE:g}, 0 = no depth.",
-           "depth_scale": DEPTH_SCALE, "camera": "cam0", "undistorted_K": np.asarray(K).reshape(-1).tolist()}
-    (mav0 / "depth0" / "sensor.yaml").write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
-    return folder
-
-
 def write_depth(folder: Path, ns: int, depth: np.ndarray) -> None:
     """One depth map [H,W] float32 (m, NaN invalid) as a 16-bit ``<ns>.png``."""
     q = np.rint(np.nan_to_num(depth, nan=0.0) * DEPTH_SCALE)
     q[(q > 65535) | (q < 0)] = 0
     if not cv2.imwrite(str(folder / f"{int(ns)}.png"), q.astype(np.uint16), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
         raise DataError(f"{folder}: could not write {int(ns)}.png")
-
-
-def write_imu(mav0: Path, ns: np.ndarray, imu: ImuSamples, *, noise: ImuNoise, rate_hz: float = 200.0) -> None:
-    """imu0/data.csv (gyro then accel) and imu0/sensor.yaml with the noise model."""
-    _write_rows(mav0 / "imu0" / "data.csv", IMU_HEADER, ns, np.concatenate([imu.gyro, imu.accel], 1))
-    doc = {"sensor_type": "imu", "comment": "VI3 simulated IMU (EuRoC ADIS16448 noise model)",
-           "T_BS": _IDENTITY_T_BS, "rate_hz": rate_hz,
-           "gyroscope_noise_density": noise.gyro_noise_density, "gyroscope_random_walk": noise.gyro_random_walk,
-           "accelerometer_noise_density": noise.accel_noise_density,
-           "accelerometer_random_walk": noise.accel_random_walk}
-    (mav0 / "imu0" / "sensor.yaml").write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
-
-
-def write_groundtruth(mav0: Path, ns: np.ndarray, T_WB: np.ndarray, v_WB: np.ndarray, bg: np.ndarray,
-                      ba: np.ndarray) -> None:
-    """state_groundtruth_estimate0/data.csv (+ sensor.yaml) and body.yaml."""
-    q = so3.R_to_quat(T_WB[:, :3, :3])[:, [3, 0, 1, 2]]  # EuRoC order: w x y z
-    _write_rows(mav0 / "state_groundtruth_estimate0" / "data.csv", GT_HEADER, ns,
-                np.concatenate([T_WB[:, :3, 3], q, v_WB, bg, ba], 1))
-    doc = {"sensor_type": "visual-inertial", "comment": "VI3 exact simulated body state (no estimation).",
-           "T_BS": _IDENTITY_T_BS}
-    (mav0 / "state_groundtruth_estimate0" / "sensor.yaml").write_text(
-        yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
-    (mav0 / "body.yaml").write_text("comment: VI3 simulated drone (EuRoC body frame = IMU frame)\n")

@@ -1,29 +1,49 @@
-"""Generate an EuRoC-format ASL sequence with exact ground truth: trajectory + IMU + rendering + GT depth.
+"""EuRoC-format ASL sequences with exact ground truth: a trajectory, its IMU, rendered cam0 frames and GT depth.
 
-The drone flies ``vi3_core.sim.trajectory.make_trajectory("drone", seed)`` inside the scene's free volume;
-cam0 (EuRoC's intrinsics, radial-tangential distortion and ``T_BS``) renders mono8 at 20 Hz; the IMU
-(``simulate_imu``, EuRoC noise, random initial gyro bias) and the ground-truth state run at 200 Hz on the same
+Generated (``SequenceSpec.from_euroc`` None): the drone flies ``make_trajectory("drone", seed, motion=...)`` inside
+the scene's free volume; cam0 (EuRoC's intrinsics, radial-tangential distortion and ``T_BS``) renders mono8 at
+20 Hz; the IMU (``ImuSimulator``: EuRoC noise, airframe vibration for the realistic presets, a random initial gyro
+bias and, by default, an accelerometer bias of EuRoC's size) and the ground-truth state run at 200 Hz on the same
 nanosecond grid, so camera stamps coincide with IMU and GT stamps, as in EuRoC.
+
+Along a real EuRoC recording (``from_euroc``: a ``mav0`` folder with ``imu0``, ``state_groundtruth_estimate0`` and
+``cam0/sensor.yaml``, images not needed): the IMU samples are carried unchanged (values and ns stamps), the GT rows
+are copied, cam0 frames are rendered at the camera's rate on the IMU's ns grid within the span both cover, at the
+GT body pose (position: cubic Hermite through the GT positions and velocities; attitude: rotation spline) times
+the folder's own cam0 ``T_BS``, in the scene moved and grown around the trajectory.
+
+Everything is produced and written one ``BLOCK_NS`` of time at a time (frames rendered by a small thread pool,
+two blocks in flight), so memory does not grow with the length of the sequence.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import math
 import os
 import shutil
 import tempfile
+import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.interpolate import CubicHermiteSpline
+from scipy.spatial.transform import Rotation, RotationSpline
 
+from vi3_core import so3
 from vi3_core.dataset import asl
-from vi3_core.dataset.calib import CameraCalib
+from vi3_core.dataset.calib import CameraCalib, load_calib
+from vi3_core.errors import DataError
 from vi3_core.render.raycast import Renderer
-from vi3_core.render.scene import make_scene
+from vi3_core.render.scene import SCENES, Scene, make_scene
 from vi3_core.sim import euroc
-from vi3_core.sim.imu import ImuNoise, simulate_imu
-from vi3_core.sim.trajectory import make_trajectory
+from vi3_core.sim.imu import ImuNoise, ImuSimulator, default_vibration, draw_accel_bias
+from vi3_core.sim.trajectory import MOTIONS, make_trajectory
+from vi3_core.types import ImuSamples
 
 #: EuRoC cam0 (MH_01 ``cam0/sensor.yaml``): intrinsics, radial-tangential distortion, T_BS, 752x480 @ 20 Hz.
 EUROC_CAM0 = CameraCalib(K=euroc.K_cam0(), dist_model="radtan", dist=np.array(euroc.DISTORTION_CAM0),
@@ -33,28 +53,275 @@ T0_NS = 1_700_000_000_000_000_000  # first camera stamp (ns): EuRoC-like epoch s
 CAM_PERIOD_NS = 50_000_000  # 20 Hz
 IMU_PERIOD_NS = 5_000_000  # 200 Hz
 IMU_MARGIN_NS = 100_000_000  # IMU and GT start 0.1 s before the first frame and end 0.1 s after the last
+IMU_HISTORY_NS = 1_000_000_000  # IMU kept before the first frame of a recording rendered from a later start
+BLOCK_NS = 2_000_000_000  # streams are produced and written 2 s at a time
+MIN_SECONDS = CAM_PERIOD_NS * 1e-9  # the shortest sequence: two frames
+#: Version of what the generator writes for given parameters (part of the cache marker).
+GENERATOR_VERSION = 2
+#: Hidden folders that hold a sequence while it is written: ``.vi3-generating.<pid>.<random>``.
+STAGING_PREFIX = ".vi3-generating."
 
 
-def generate_sequence(out_dir, *, seconds: float = 4.0, seed: int = 0, scene: str = "room",
-                      imu_noise: bool = True, with_depth: bool = True, workers: int = 2) -> Path:
-    """Write an ASL sequence to ``out_dir/mav0`` and return ``out_dir`` (cached).
+@dataclass(frozen=True)
+class SequenceSpec:
+    """What to write. seconds: length of the camera stream (None with ``from_euroc``: all the recording covers);
+    seed: scene, trajectory and IMU noise (scene only with ``from_euroc``); scene: one of ``SCENES``; motion: one of
+    ``MOTIONS``; accel_bias: an initial accelerometer bias of EuRoC's size (else zero); imu_noise: EuRoC noise,
+    bias random walks and airframe vibration (else noise-free IMU with constant biases); with_depth: GT depth maps;
+    from_euroc: a real EuRoC ``mav0`` folder to follow (motion, accel_bias and imu_noise then do not apply);
+    start_s: with ``from_euroc``, where the camera stream starts, seconds into the span IMU and GT both cover.
+    Raises DataError on a value that cannot make a sequence."""
 
-    If ``out_dir`` already holds a complete sequence generated with the same parameters it is reused. The
-    sequence is written to a temporary folder inside ``out_dir`` first and renamed, so concurrent callers are safe.
-    ``imu_noise=False`` writes noise-free IMU with constant biases (for exact inertial checks);
-    ``workers`` threads render and encode frames (numpy and OpenCV release the GIL).
+    seconds: float | None = 4.0
+    seed: int = 0
+    scene: str = "room"
+    motion: str = "medium"
+    accel_bias: bool = True
+    imu_noise: bool = True
+    with_depth: bool = True
+    from_euroc: str | None = None
+    start_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.seconds is None:
+            if self.from_euroc is None:
+                raise DataError("seconds is required for a generated sequence")
+        elif not (isinstance(self.seconds, int | float) and math.isfinite(self.seconds)) \
+                or self.seconds < MIN_SECONDS:
+            raise DataError(f"seconds must be a finite number >= {MIN_SECONDS:g} (two camera frames), got "
+                            f"{self.seconds!r}; nothing to generate")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int | np.integer) or self.seed < 0:
+            raise DataError(f"seed must be an integer >= 0, got {self.seed!r}")
+        if self.scene not in SCENES:
+            raise DataError(f"unknown scene {self.scene!r}; choose one of {sorted(SCENES)}")
+        if self.motion not in MOTIONS:
+            raise DataError(f"unknown motion preset {self.motion!r}; choose one of {list(MOTIONS)}")
+        if not (math.isfinite(self.start_s) and self.start_s >= 0.0):
+            raise DataError(f"start must be a finite number of seconds >= 0, got {self.start_s!r}")
+        if self.start_s and self.from_euroc is None:
+            raise DataError("start applies to sequences rendered along a recording (from_euroc)")
+
+
+@dataclass(frozen=True)
+class Block:
+    """The streams of one block of time, each in stamp order: frames ``cam_ns`` [n] int64 at camera poses ``T_WC``
+    [n,4,4] with their raw mono8 ``images`` ([H,W] uint8 each; empty until rendered), IMU ``imu_ns`` [m] with
+    ``imu``, ground truth ``gt_ns`` [k] with body poses ``T_WB`` [k,4,4] in W, ``v_WB`` [k,3], biases ``bg``,
+    ``ba`` [k,3]."""
+
+    cam_ns: np.ndarray
+    T_WC: np.ndarray
+    imu_ns: np.ndarray
+    imu: ImuSamples
+    gt_ns: np.ndarray
+    T_WB: np.ndarray
+    v_WB: np.ndarray
+    bg: np.ndarray
+    ba: np.ndarray
+    images: tuple[np.ndarray, ...] = ()
+
+
+def euroc_mav0(path) -> Path:
+    """The ``mav0`` folder at ``path`` or inside it (a recording to follow needs no images, so no cam0/data)."""
+    path = Path(path)
+    mav0 = path / "mav0" if (path / "mav0").is_dir() else path
+    if not (mav0 / "imu0").is_dir():
+        raise DataError(f"{path}: not an EuRoC mav0 folder (no imu0/ in it or in {path / 'mav0'})")
+    return mav0
+
+
+def _in(ns: np.ndarray, ns0: int, ns1: int) -> slice:
+    """The rows of sorted stamps ``ns`` within [ns0, ns1)."""
+    return slice(int(np.searchsorted(ns, ns0)), int(np.searchsorted(ns, ns1)))
+
+
+class _Generated:
+    """A generated flight (see the module docstring); ``block`` must be called on consecutive blocks."""
+
+    def __init__(self, spec: SequenceSpec, world: Scene) -> None:
+        self.calib = EUROC_CAM0
+        self.traj = make_trajectory("drone", spec.seed, motion=spec.motion, center=tuple(world.center),
+                                    extent=tuple(world.extent))
+        n_frames = int(round(spec.seconds * 1e9 / CAM_PERIOD_NS)) + 1
+        self.last_frame_ns = T0_NS + (n_frames - 1) * CAM_PERIOD_NS
+        self.first_ns, self.last_ns = T0_NS - IMU_MARGIN_NS, self.last_frame_ns + IMU_MARGIN_NS
+        rng = np.random.default_rng([spec.seed, 3])
+        bg0 = rng.uniform(-0.03, 0.03, size=3)  # rad/s, EuRoC-sized initial gyro bias
+        ba0 = draw_accel_bias(rng) if spec.accel_bias else np.zeros(3)
+        self.noise = ImuNoise() if spec.imu_noise else ImuNoise.zero()
+        self.imu = ImuSimulator(self.traj, dt=IMU_PERIOD_NS * 1e-9, noise=self.noise, bg0=bg0, ba0=ba0,
+                                seed=spec.seed, vibration=default_vibration(spec.motion, spec.imu_noise))
+
+    def _t(self, ns: np.ndarray) -> np.ndarray:
+        """The trajectory's clock: seconds since the first IMU sample (exact on the ns grid)."""
+        return (ns - self.first_ns) * 1e-9
+
+    def block(self, ns0: int, ns1: int) -> Block:
+        imu_ns = np.arange(max(ns0, self.first_ns), min(ns1, self.last_ns + 1), IMU_PERIOD_NS, dtype=np.int64)
+        cam_ns = np.arange(max(ns0 + (T0_NS - ns0) % CAM_PERIOD_NS, T0_NS), min(ns1, self.last_frame_ns + 1),
+                           CAM_PERIOD_NS, dtype=np.int64)
+        sim = self.imu(self._t(imu_ns))
+        return Block(cam_ns, self.traj.T_WB(self._t(cam_ns)) @ self.calib.T_BC, imu_ns,
+                     ImuSamples(imu_ns * 1e-9, sim.samples.gyro, sim.samples.accel), imu_ns,
+                     self.traj.T_WB(self._t(imu_ns)), self.traj.velocity_W(self._t(imu_ns)), sim.bg, sim.ba)
+
+
+class _Euroc:
+    """A real EuRoC recording to render along (see the module docstring)."""
+
+    def __init__(self, spec: SequenceSpec) -> None:
+        self.src = src = euroc_mav0(spec.from_euroc)
+        imu_ns, imu = asl.read_imu(src)
+        gt = asl.read_groundtruth(src)
+        if gt is None:
+            raise DataError(f"{src}: no state_groundtruth_estimate0/ to follow (rendering needs the GT trajectory)")
+        self.calib = load_calib(src / "cam0" / "sensor.yaml")
+        if len(imu_ns) < 2 or np.any(np.diff(imu_ns) <= 0):
+            raise DataError(f"{src / 'imu0' / 'data.csv'}: needs >= 2 strictly increasing stamps")
+        lo, hi = max(imu_ns[0], gt.t_ns[0]), min(imu_ns[-1], gt.t_ns[-1])
+        period = 1e9 / (self.calib.rate_hz or euroc.CAMERA_RATE_HZ)
+        if hi - lo < period:
+            raise DataError(f"{src}: the IMU [{imu_ns[0]}, {imu_ns[-1]}] ns and the ground truth "
+                            f"[{gt.t_ns[0]}, {gt.t_ns[-1]}] ns share less than one camera period")
+        # Frames on the IMU's own stamps: the first at or after each camera period from the start of the shared span.
+        want = lo + np.arange(int((hi - lo) // period) + 1) * period
+        cam_ns = np.unique(imu_ns[np.minimum(np.searchsorted(imu_ns, want), len(imu_ns) - 1)])
+        cam_ns = cam_ns[(cam_ns >= lo + spec.start_s * 1e9) & (cam_ns <= hi)]
+        if spec.seconds is not None and len(cam_ns):
+            cam_ns = cam_ns[cam_ns <= cam_ns[0] + spec.seconds * 1e9]
+        if len(cam_ns) < 2:
+            raise DataError(f"{src}: fewer than two camera frames fit in the span covered by both IMU and GT "
+                            f"({(hi - lo) * 1e-9:.2f} s) after start {spec.start_s:g} s")
+        # All IMU samples up to the frames (a later start keeps IMU_HISTORY_NS before the first), then a margin.
+        first = imu_ns[0] if not spec.start_s else cam_ns[0] - IMU_HISTORY_NS
+        imu_keep = (imu_ns >= first) & (imu_ns <= cam_ns[-1] + IMU_MARGIN_NS)
+        imu_ns, imu = imu_ns[imu_keep], imu.select(imu_keep)
+        gt_keep = (gt.t_ns >= imu_ns[0]) & (gt.t_ns <= imu_ns[-1])
+        self.imu_ns, self.imu = imu_ns, imu
+        self.gt_ns, self.T_WB, self.v_WB = gt.t_ns[gt_keep], gt.T_WB[gt_keep], gt.v_WB[gt_keep]
+        self.bg, self.ba = gt.bg[gt_keep], gt.ba[gt_keep]
+        t = (gt.t_ns - gt.t_ns[0]) * 1e-9
+        position = CubicHermiteSpline(t, gt.T_WB[:, :3, 3], gt.v_WB, axis=0)
+        attitude = RotationSpline(t, Rotation.from_matrix(gt.T_WB[:, :3, :3]))
+        tc = (cam_ns - gt.t_ns[0]) * 1e-9
+        self.cam_ns = cam_ns
+        self.T_WC = so3.make_T(attitude(tc).as_matrix(), position(tc)) @ self.calib.T_BC
+        self.first_ns, self.last_ns = int(min(imu_ns[0], self.gt_ns[0])), int(max(imu_ns[-1], self.gt_ns[-1]))
+        body = position(tc)
+        self.center = 0.5 * (body.min(0) + body.max(0))
+        self.extent = 0.5 * (body.max(0) - body.min(0)) + 0.1  # 10 cm beyond the flown box
+
+    def block(self, ns0: int, ns1: int) -> Block:
+        c, i, g = _in(self.cam_ns, ns0, ns1), _in(self.imu_ns, ns0, ns1), _in(self.gt_ns, ns0, ns1)
+        return Block(self.cam_ns[c], self.T_WC[c], self.imu_ns[i], self.imu.select(i), self.gt_ns[g],
+                     self.T_WB[g], self.v_WB[g], self.bg[g], self.ba[g])
+
+
+def write_sequence(mav0, spec: SequenceSpec, *, workers: int = 2,
+                   on_block: Callable[[Block], None] | None = None) -> CameraCalib:
+    """Write the sequence ``spec`` into the (new or empty) folder ``mav0``, a block at a time; ``on_block`` gets
+    each block's streams in time order (e.g. to write a bag in the same pass). ``workers`` threads render and encode
+    frames (numpy and OpenCV release the GIL). Returns the cam0 calibration the frames were rendered with."""
+    mav0 = Path(mav0)
+    if spec.from_euroc is None:
+        world = make_scene(spec.scene, spec.seed)
+        source: _Generated | _Euroc = _Generated(spec, world)
+    else:
+        source = _Euroc(spec)
+        world = make_scene(spec.scene, spec.seed, center=source.center, extent=source.extent)
+    writer = asl.AslWriter(mav0, with_depth=spec.with_depth)
+    if spec.from_euroc is None:
+        asl.write_sensor_yaml(mav0, source.calib, source.noise)
+    else:  # the recording's own calibration files, unchanged
+        for rel in ("cam0/sensor.yaml", "imu0/sensor.yaml", "state_groundtruth_estimate0/sensor.yaml", "body.yaml"):
+            if (source.src / rel).is_file():
+                shutil.copyfile(source.src / rel, mav0 / rel)
+    if spec.with_depth:
+        asl.write_depth_yaml(mav0, source.calib.undistorter().K)
+    renderer = Renderer(world, source.calib)
+
+    def render(ns: int, T_WC: np.ndarray) -> np.ndarray:
+        image, depth = renderer.render(T_WC, with_depth=spec.with_depth)
+        asl.write_image(writer.image_dir, ns, image)
+        if writer.depth_dir is not None:
+            asl.write_depth(writer.depth_dir, ns, depth)
+        return image
+
+    def finish(rows: Block, frames: list) -> None:
+        images = tuple(f.result() for f in frames)
+        writer.frames(rows.cam_ns)
+        writer.imu(rows.imu_ns, rows.imu)
+        writer.groundtruth(rows.gt_ns, rows.T_WB, rows.v_WB, rows.bg, rows.ba)
+        if on_block is not None:
+            on_block(replace(rows, images=images))
+
+    pool = ThreadPoolExecutor(max(workers, 1))
+    try:
+        pending = None  # the block being rendered while the next one is submitted
+        for ns0 in range(source.first_ns, source.last_ns + 1, BLOCK_NS):
+            rows = source.block(ns0, ns0 + BLOCK_NS)
+            frames = [pool.submit(render, ns, T) for ns, T in zip(rows.cam_ns.tolist(), rows.T_WC)]
+            if pending is not None:
+                finish(*pending)
+            pending = (rows, frames)
+        if pending is not None:
+            finish(*pending)
+    finally:  # an error or an interrupt: drop queued frames, wait for those being written
+        pool.shutdown(wait=True, cancel_futures=True)
+    return source.calib
+
+
+# ------------------------------------------------------------------------------------------- staging and cache
+def staging_dir(parent) -> Path:
+    """A new hidden folder ``parent/.vi3-generating.<pid>.<random>`` to write into before renaming."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_staging(parent)
+    return Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}.", dir=parent))
+
+
+def remove_stale_staging(parent) -> list[Path]:
+    """Remove the staging folders in ``parent`` that runs which are gone left behind (killed, crashed): those whose
+    pid is no running process, and those of earlier versions without a pid that are over an hour old. Returns them."""
+    removed = []
+    for path in Path(parent).glob(f"{STAGING_PREFIX}*"):
+        pid = path.name[len(STAGING_PREFIX):].split(".")[0]
+        if pid.isdigit():
+            stale = not _alive(int(pid))
+        else:
+            stale = time.time() - path.stat().st_mtime > 3600.0
+        if stale and path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def generate_sequence(out_dir, *, workers: int = 2, **spec) -> Path:
+    """Write the ASL sequence ``SequenceSpec(**spec)`` to ``out_dir/mav0`` and return ``out_dir`` (cached).
+
+    If ``out_dir`` already holds a complete sequence generated with the same spec and ``GENERATOR_VERSION`` it is
+    reused. The sequence is written to a staging folder inside ``out_dir`` first and renamed, so concurrent callers
+    are safe.
     """
     out_dir = Path(out_dir)
-    params = {"seconds": float(seconds), "seed": int(seed), "scene": scene, "imu_noise": bool(imu_noise),
-              "with_depth": bool(with_depth), "version": 1}
+    params = {**asdict(SequenceSpec(**spec)), "version": GENERATOR_VERSION}
+    params["seconds"] = None if params["seconds"] is None else float(params["seconds"])
     marker = out_dir / "mav0" / "vi3_generated.json"
     if _matches(marker, params):
         return out_dir
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".vi3-generating.", dir=out_dir))
+    tmp = staging_dir(out_dir)
     try:
-        _write(tmp / "mav0", seconds=seconds, seed=seed, scene=scene, imu_noise=imu_noise,
-               with_depth=with_depth, workers=workers)
+        write_sequence(tmp / "mav0", SequenceSpec(**spec), workers=workers)
         (tmp / "mav0" / "vi3_generated.json").write_text(json.dumps(params))
         if _matches(marker, params):  # another process finished the same sequence meanwhile
             return out_dir
@@ -69,6 +336,13 @@ def generate_sequence(out_dir, *, seconds: float = 4.0, seed: int = 0, scene: st
     return out_dir
 
 
+def generation_tag(out_dir) -> str:
+    """A short digest of the parameters and generator version ``out_dir`` was generated with: files derived from the
+    sequence (bags converted from it) are cached under it, so a regenerated sequence never meets stale ones."""
+    marker = Path(out_dir) / "mav0" / "vi3_generated.json"
+    return hashlib.sha1(marker.read_bytes()).hexdigest()[:10]
+
+
 def _matches(marker: Path, params: dict) -> bool:
     try:
         return json.loads(marker.read_text()) == params
@@ -76,42 +350,17 @@ def _matches(marker: Path, params: dict) -> bool:
         return False
 
 
-def cached_sequence(cache_dir, *, seconds: float = 4.0, seed: int = 0, scene: str = "room",
-                    imu_noise: bool = True, with_depth: bool = True) -> Path:
-    """``generate_sequence`` into ``cache_dir/<key>`` where the key names every parameter."""
-    key = f"{scene}_seed{seed}_{seconds:g}s{'' if imu_noise else '_noisefree'}{'' if with_depth else '_nodepth'}"
-    return generate_sequence(Path(cache_dir) / key, seconds=seconds, seed=seed, scene=scene,
-                             imu_noise=imu_noise, with_depth=with_depth)
-
-
-def _write(mav0: Path, *, seconds: float, seed: int, scene: str, imu_noise: bool, with_depth: bool,
-           workers: int) -> None:
-    world = make_scene(scene, seed)
-    traj = make_trajectory("drone", seed, center=tuple(world.center), extent=tuple(world.extent))
-    calib = EUROC_CAM0
-    n_frames = int(round(seconds * 1e9 / CAM_PERIOD_NS)) + 1
-    cam_ns = T0_NS + np.arange(n_frames, dtype=np.int64) * CAM_PERIOD_NS
-    imu_ns = np.arange(cam_ns[0] - IMU_MARGIN_NS, cam_ns[-1] + IMU_MARGIN_NS + 1, IMU_PERIOD_NS, dtype=np.int64)
-    rng = np.random.default_rng([seed, 3])
-    bg0 = rng.uniform(-0.03, 0.03, size=3)  # rad/s, EuRoC-sized initial gyro bias
-    noise = ImuNoise() if imu_noise else ImuNoise.zero()
-    # The trajectory's clock starts at the first IMU sample; stamps are exact on the ns grid.
-    t_imu = (imu_ns - imu_ns[0]) * 1e-9
-    sim = simulate_imu(traj, t_imu, noise=noise, bg0=bg0, ba0=np.zeros(3), seed=seed)
-    imu = type(sim.samples)(imu_ns * 1e-9, sim.samples.gyro, sim.samples.accel)
-    asl.write_imu(mav0, imu_ns, imu, noise=noise)
-    asl.write_groundtruth(mav0, imu_ns, traj.T_WB(t_imu), traj.velocity_W(t_imu), sim.bg, sim.ba)
-
-    renderer = Renderer(world, calib)
-    img_dir = asl.write_camera(mav0, calib, cam_ns)
-    depth_dir = asl.write_depth_meta(mav0, cam_ns, calib.undistorter().K) if with_depth else None
-    T_WC = traj.T_WB((cam_ns - imu_ns[0]) * 1e-9) @ calib.T_BC
-
-    def frame(i: int) -> None:
-        image, depth = renderer.render(T_WC[i], with_depth=with_depth)
-        asl.write_image(img_dir, cam_ns[i], image)
-        if depth_dir is not None:
-            asl.write_depth(depth_dir, cam_ns[i], depth)
-
-    with ThreadPoolExecutor(max(workers, 1)) as pool:
-        list(pool.map(frame, range(n_frames)))
+def cached_sequence(cache_dir, *, seconds: float | None = 4.0, seed: int = 0, scene: str = "room",
+                    motion: str = "medium", accel_bias: bool = True, imu_noise: bool = True, with_depth: bool = True,
+                    from_euroc=None, start_s: float = 0.0) -> Path:
+    """``generate_sequence`` into ``cache_dir/<key>`` where the key names every parameter that is not the default
+    (``room_seed0_4s`` is the default medium-motion sequence with accelerometer bias, noise and depth)."""
+    length = "all" if seconds is None else f"{seconds:g}s"
+    key = f"{scene}_seed{seed}_{length}" + ("" if motion == "medium" else f"_{motion}") \
+        + ("" if accel_bias else "_noaccelbias") + ("" if imu_noise else "_noisefree") \
+        + ("" if with_depth else "_nodepth")
+    if from_euroc is not None:
+        key = f"euroc_{euroc_mav0(from_euroc).resolve().parent.name}_from{start_s:g}s_{key}"
+    return generate_sequence(Path(cache_dir) / key, seconds=seconds, seed=seed, scene=scene, motion=motion,
+                             accel_bias=accel_bias, imu_noise=imu_noise, with_depth=with_depth,
+                             from_euroc=None if from_euroc is None else str(from_euroc), start_s=start_s)

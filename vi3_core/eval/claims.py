@@ -2,7 +2,8 @@
 off (a confident wrong scale, the number a user of a metric node cares about most), and how well each clip's own
 scale sigma (``InitResult.scale_sigma``) predicts its error.
 
-A clip's error is |Scale (Traj.) - 1| (the ratio of its metric to the true translation; clips without one, e.g.
+A clip's error is |Scale (fit) - 1| (the least-squares ratio of its metric to the true camera positions,
+``metrics.scale_fit``: it weighs long baselines, so pose noise does not pass for scale error; clips without one, e.g.
 stationary ones, are not scored) and its relative sigma ``scale_sigma / scale``; a calibrated sigma has about 68 % /
 95 % of the errors within 1 / 2 sigma (Gaussian errors).
 """
@@ -22,7 +23,7 @@ NO_SIGMA = "no sigma: no claimed clip reports a scale sigma"
 
 @dataclass(frozen=True)
 class Claims:
-    """The clips that claimed a scale (status ok) and have a Scale (Traj.): errors [n] |Scale (Traj.) - 1|,
+    """The clips that claimed a scale (status ok) and have a Scale (fit): errors [n] |Scale (fit) - 1|,
     rel_sigma [n] their relative 1-sigma (NaN where none was reported)."""
 
     errors: np.ndarray
@@ -30,7 +31,7 @@ class Claims:
 
     @staticmethod
     def of(errors: Iterable[float], rel_sigma: Iterable[float]) -> Claims:
-        """From per-clip values [n] (NaN error: the clip claimed no scale, or has no Scale (Traj.); dropped)."""
+        """From per-clip values [n] (NaN error: the clip claimed no scale, or has no Scale (fit); dropped)."""
         e = np.asarray(list(errors), dtype=np.float64).reshape(-1)
         s = np.asarray(list(rel_sigma), dtype=np.float64).reshape(-1)
         if e.shape != s.shape:
@@ -68,8 +69,8 @@ def rel_sigma(e: ClipEval) -> float:
 
 
 def scale_error(e: ClipEval, column: str) -> float:
-    """|Scale (Traj.) - 1| of the clip's ``column`` (NaN when it has none)."""
-    return abs(e.columns[column].scale_traj - 1.0) if column in e.columns else float("nan")
+    """|Scale (fit) - 1| of the clip's ``column`` (NaN when it has none)."""
+    return abs(e.columns[column].scale_fit - 1.0) if column in e.columns else float("nan")
 
 
 def clip_claims(evals: Sequence[ClipEval], column: str) -> Claims:

@@ -26,6 +26,7 @@ from vi3_core.types import InitStatus
 
 METRIC_LABELS: dict[str, str] = {
     "trans_rmse_m": "Trans (m) ↓", "rot_deg": "Rot (deg) ↓", "scale_traj": "Scale (Traj.) →1",
+    "scale_fit": "Scale (fit) →1",
     "absrel": "AbsRel ↓", "delta125": "δ<1.25 ↑", "scale_depth": "Scale (Depth) →1",
 }
 INIT_LABELS: dict[str, str] = {
@@ -108,6 +109,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
         "clips": [{"frames": [int(e.indices[0]), int(e.indices[-1])], "t0": float(e.stamps[0]), "status": e.status,
                    "reason": e.reason, "mode": e.mode,
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
+                   "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
                    "scale_rel_sigma": rel_sigma(e)} for e in evals],
     })
 
@@ -137,6 +139,8 @@ def _fmt(value: float | None, key: str) -> str:
         return "--"
     if key.endswith("err_median") or key.endswith("sigma"):
         return f"{value:.4f}"
+    if key == "scale_fit":  # the trust metrics' reference: per-cent errors need the third decimal
+        return f"{value:.3f}"
     return f"{value:.2f}" if key.startswith("scale") or key.endswith("ratio") else f"{value:.3f}"
 
 
@@ -178,13 +182,14 @@ def format_clips(summary: dict) -> str:
     if not clips:
         return "no clips"
     chained = summary.get("chained")
-    header = ["#", "frames", "t (s)", "status", "Scale (Traj.)", "rel. sigma"]
+    header = ["#", "frames", "t (s)", "status", "Scale (Traj.)", "Scale (fit)", "rel. sigma"]
     if chained:
         header += ["own init", "own |err|", "own sigma"]
     rows = []
     for k, c in enumerate(clips):
         row = [str(k), f"{c['frames'][0]}-{c['frames'][1]}", f"{c['t0'] - clips[0]['t0']:.2f}", c["status"],
-               _fmt(c["scale_traj"], "scale_traj"), _fmt(c["scale_rel_sigma"], "rel_sigma")]
+               _fmt(c["scale_traj"], "scale_traj"), _fmt(c["scale_fit"], "scale_fit"),
+               _fmt(c["scale_rel_sigma"], "rel_sigma")]
         if chained:
             own = chained["independent_clips"][k]
             row += [own["status"], _fmt(own["scale_err"], "err_median"), _fmt(own["scale_rel_sigma"], "rel_sigma")]

@@ -267,8 +267,8 @@ def _finish(seq: Sequence, est: OnlineEstimator, run: OnlineRun, evals: list[Cli
     run.stamps, run.T_OB, run.segment_starts = traj.stamps, traj.T_OB, list(traj.resets)
     run.T_WB = seq.gt.at(traj.stamps).T_WB if len(traj.stamps) else np.zeros((0, 4, 4))
     run.scale_err = np.array([scale_error(e, e.mode) for e in evals])
-    # Scale (Traj.) is linear in the scale: the free init's is the base's times its scale.
-    base = np.array([e.columns["base"].scale_traj for e in evals])
+    # Scale (fit) is linear in the scale: the free init's is the base's times its scale.
+    base = np.array([e.columns["base"].scale_fit for e in evals])
     status = [st for st, _, _ in free]
     scale = np.array([sc for _, sc, _ in free], dtype=np.float64)
     ok = np.array([st == "ok" for st in status], dtype=bool)

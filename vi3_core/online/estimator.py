@@ -12,8 +12,9 @@ in the IMU (or a bridge longer than ``max_bridge_s``), an out-of-order clip, or 
 in a row restart the window (the accelerometer bias survives as a prior, the gyro-bias median and the odom attitude
 survive as they are); a restart clip is claimed only when its own sigma passes.
 
-Every claimed clip is placed in odom at its IMU-propagated pose (the last pose without IMU), levelled with its
-gravity, yaw kept; a placement whose bridge has no IMU or a position 1-sigma above ``max_bridge_sigma_m`` starts a new
+Every claimed clip is placed in odom through the IMU from the last chained frame with both ends' velocities (the last
+pose without IMU; ``_placement``), levelled with its gravity, yaw kept; a placement whose bridge has no IMU or a
+position 1-sigma above ``max_bridge_sigma_m`` starts a new
 segment of the trajectory (``Trajectory.resets``).
 """
 
@@ -115,7 +116,7 @@ class OnlineEstimator:
         self._rejects = 0
         self._window_claimed = False  # the window (since its last restart) has claimed a scale
         self._last_start: float | None = None  # first frame of the previous clip seen, s
-        self._pending: tuple[float, Placement] | None = None
+        self._pending: float | None = None  # first stamp of the clip ``initialise`` saw last
 
     @property
     def g_O(self) -> np.ndarray:
@@ -134,9 +135,16 @@ class OnlineEstimator:
             return "no IMU"
         return validate.check_imu(self._imu.window(t0, t1), np.array([t0, t1]), self.init_options) or ""
 
-    def _placement(self, t1: float) -> Placement:
-        """The odom state propagated to t1 through the IMU from its frame nearest before t1; without IMU (or state),
-        the last pose (or the origin), starting a new segment."""
+    def _placement(self, t1: float, init: InitResult) -> Placement:
+        """Where the clip starting at t1 goes: the odom state at its frame nearest before t1 carried to t1 through the
+        IMU, with both ends' velocities (the state's, and the clip's own first-frame velocity ``init.v1``); without
+        IMU over the gap (or state), the last pose (or the origin), starting a new segment.
+
+        Two ends: with v_a (state) and v_b (clip) in the body frame at t_k, v_b = v_a + g T + beta(T) gives
+        p(T) = (v_a + v_b) T / 2 + alpha(T) - beta(T) T / 2: gravity drops out, and a constant accelerometer-bias
+        error cancels (alpha and beta T / 2 grow alike), where a one-ended bridge v_a T + g T^2 / 2 + alpha(T) lets
+        a gravity tilt or a bias error grow with T^2 (metres over ten seconds). What is left: the two velocities'
+        errors times T / 2, and the accelerometer noise (q_a T^1.5 / sqrt(12) with both ends held)."""
         st = self.state
         if st is None:
             return Placement(np.eye(3), np.zeros(3), "")
@@ -144,7 +152,7 @@ class OnlineEstimator:
         if k < 0:
             return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3],
                              f"clip starts at {t1:.3f} s, before the previous clip's first frame")
-        R_k, p_k, v_k = st.T_OB[k, :3, :3], st.T_OB[k, :3, 3], st.v_O[k]
+        R_k, p_k = st.T_OB[k, :3, :3], st.T_OB[k, :3, 3]
         T = t1 - float(st.stamps[k])
         if T < 1e-9:
             return Placement(R_k, p_k)
@@ -153,15 +161,14 @@ class OnlineEstimator:
         if why:
             return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3], f"no bridge over {T:.2f} s: {why}")
         stamps = np.array([st.stamps[k], t1])
-        pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, st.bg, st.ba)
-        bridge = pre.propagate(R_k.T @ self.g_O, R_k.T @ v_k)  # in B_k, then rotated into odom
-        noise = self.init_options.noise_model
-        G = self.init_options.gravity_norm
-        sigma = math.hypot(st.v_sigma * T, 0.5 * G * st.g_sigma * T**2,
-                           noise.accel_noise_density * T**1.5 / math.sqrt(3.0))
+        pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, init.bg, init.ba)
+        v_a, v_b = R_k.T @ st.v_O[k], pre.R[1] @ init.v1
+        d = 0.5 * (v_a + v_b) * T + pre.alpha[1] - 0.5 * pre.beta[1] * T
+        sigma = math.hypot(0.5 * T * math.hypot(st.v_sigma, float(init.diagnostics.get("v1_sigma", 0.0))),
+                           self.init_options.noise_model.accel_noise_density * T**1.5 / math.sqrt(12.0))
         new = (f"bridge of {T:.2f} s has a position 1-sigma of {sigma:.2f} m > max_bridge_sigma_m "
                f"{self.options.max_bridge_sigma_m}") if sigma > self.options.max_bridge_sigma_m else ""
-        return Placement(R_k @ bridge.R[1], p_k + R_k @ bridge.p[1], new)
+        return Placement(R_k @ pre.R[1], p_k + R_k @ d, new)
 
     def _filtered_bg(self, t1: float, bg: np.ndarray) -> tuple[np.ndarray, float]:
         """Median [3] rad/s of the own (rotation-based) gyro-bias estimates of the clips of the last ``bg_window_s``
@@ -206,7 +213,7 @@ class OnlineEstimator:
         self._remember_imu(clip)
         free = initialise_clip(clip, geometry, options=io)
         t1, t_end = float(clip.stamps[0]), float(clip.stamps[-1])
-        self._pending = (t1, self._placement(t1))
+        self._pending = t1
         decision = OnlineDecision(window=len(self.window), prior=self.window.prior is not None)
         if free.status is InitStatus.REJECTED:  # bad data or a backbone failure: the window goes on without it
             return self._decide(free, replace(decision, rejected={"clip": free.reason}), free)
@@ -284,10 +291,9 @@ class OnlineEstimator:
         init = result.init
         target = result.target or init.target
         pending, self._pending = self._pending, None
-        if not init.ok or target is None or result.mode == "none" or pending is None \
-                or pending[0] != float(clip.stamps[0]):
+        if not init.ok or target is None or result.mode == "none" or pending != float(clip.stamps[0]):
             return None
-        place = pending[1]
+        place = self._placement(pending, init)
         R_OB1 = gravity_align(place.R_OB1, init.g)
         T_BC = clip.T_BC
         T_B1B = T_BC @ result.geometry.T_wc @ so3.inv_T(T_BC)  # metric body poses in B1

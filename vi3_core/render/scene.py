@@ -9,7 +9,7 @@ trajectories stay in: boxes keep ``clearance`` metres away from it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -96,11 +96,30 @@ def _place_boxes(rng: np.random.Generator, spec: SceneSpec) -> tuple[np.ndarray,
     return b_lo[chosen], b_hi[chosen]
 
 
-def make_scene(name: str = "room", seed: int = 0) -> Scene:
-    """The scene ``name`` (one of ``SCENES``) with boxes and textures drawn from ``seed``."""
+def _around(spec: SceneSpec, center: np.ndarray, extent: np.ndarray) -> SceneSpec:
+    """``spec`` moved and grown to hold the flight volume ``center`` +- ``extent`` [3] (m, W): floor, ceiling and
+    walls keep the spec's distances from the flight volume; the box count grows with the floor area."""
+    lo = np.asarray(spec.center) - spec.extent - spec.room_lo
+    hi = np.asarray(spec.room_hi) - spec.center - spec.extent
+    room_lo, room_hi = center - extent - lo, center + extent + hi
+    area = np.prod((room_hi - room_lo)[:2]) / np.prod((np.asarray(spec.room_hi) - spec.room_lo)[:2])
+    return replace(spec, room_lo=tuple(room_lo), room_hi=tuple(room_hi), center=tuple(center), extent=tuple(extent),
+                   n_boxes=int(round(spec.n_boxes * max(area, 1.0))))
+
+
+def make_scene(name: str = "room", seed: int = 0, *, center=None, extent=None) -> Scene:
+    """The scene ``name`` (one of ``SCENES``) with boxes and textures drawn from ``seed``.
+
+    ``center`` and ``extent`` [3] (m, W): a flight volume to hold instead of the scene's own, e.g. the bounding box
+    of a recorded trajectory (the room is moved and grown around it, see ``_around``).
+    """
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; choose one of {sorted(SCENES)}")
     spec = SCENES[name]
+    if center is not None or extent is not None:
+        if center is None or extent is None:
+            raise ValueError("make_scene needs both center and extent, or neither")
+        spec = _around(spec, np.asarray(center, dtype=np.float64), np.asarray(extent, dtype=np.float64))
     rng = np.random.default_rng([seed, 7151])
     room_lo, room_hi = np.asarray(spec.room_lo, float), np.asarray(spec.room_hi, float)
     box_lo, box_hi = _place_boxes(rng, spec)

@@ -1,15 +1,16 @@
-"""IMU synthesis along an analytic trajectory, with EuRoC's noise model (``imu0/sensor.yaml``)."""
+"""IMU synthesis along an analytic trajectory, with EuRoC's noise model (``imu0/sensor.yaml``), an accelerometer
+bias of EuRoC's size and, optionally, the airframe vibration a real multirotor's IMU records."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import butter, sosfilt
 
-from vi3_core.sim.trajectory import Trajectory
+from vi3_core import so3
+from vi3_core.sim.trajectory import GRAVITY, Trajectory
 from vi3_core.types import ImuSamples
-
-GRAVITY = 9.81
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,37 @@ EUROC_NOISE = ImuNoise()
 
 
 @dataclass(frozen=True)
+class Vibration:
+    """Airframe vibration (propellers) seen by the IMU: zero-mean noise above ``cutoff_hz`` with per-axis RMS
+    ``accel_rms`` (m/s^2) and ``gyro_rms`` (rad/s) in the body frame. Defaults: EuRoC V1_02_medium's real IMU in
+    flight, 15-95 Hz band (../shared/data/euroc_v102_imu_gt). Its displacement is micrometres, so it is in the IMU
+    only, not in the ground-truth motion; EuRoC's ``sensor.yaml`` noise densities do not include it either."""
+
+    accel_rms: tuple[float, float, float] = (0.85, 0.47, 0.62)
+    gyro_rms: tuple[float, float, float] = (0.018, 0.036, 0.024)
+    cutoff_hz: float = 15.0
+
+
+#: The vibration of EuRoC's AscTec Firefly in flight, on by default in the realistic motion presets.
+EUROC_VIBRATION = Vibration()
+
+def default_vibration(motion: str, noisy: bool) -> Vibration | None:
+    """``EUROC_VIBRATION`` for a noisy IMU on a realistic motion preset; None for ``agile`` (the earlier generator)
+    or a noise-free IMU."""
+    return EUROC_VIBRATION if noisy and motion != "agile" else None
+
+
+#: Accelerometer bias magnitude of a sequence, m/s^2 (EuRoC's ground truth: 0.05-0.2; V1_02: 0.14).
+ACCEL_BIAS_RANGE = (0.05, 0.2)
+
+
+def draw_accel_bias(rng: np.random.Generator) -> np.ndarray:
+    """An initial accelerometer bias [3] m/s^2: uniform magnitude in ``ACCEL_BIAS_RANGE``, uniform direction."""
+    direction = rng.standard_normal(3)
+    return direction / np.linalg.norm(direction) * rng.uniform(*ACCEL_BIAS_RANGE)
+
+
+@dataclass(frozen=True)
 class SimulatedImu:
     """Measurements plus the exact biases at every sample: samples.t [M], bg [M,3], ba [M,3]."""
 
@@ -45,36 +77,69 @@ def imu_stamps(t0: float, t1: float, rate: float = 200.0) -> np.ndarray:
     return np.arange(k0, k1 + 1) / rate
 
 
-def simulate_imu(traj: Trajectory, t: np.ndarray, *, noise: ImuNoise = EUROC_NOISE,
-                 bg0: np.ndarray | None = None, ba0: np.ndarray | None = None,
-                 seed: int = 0, with_orientation: bool = False) -> SimulatedImu:
-    """Gyro and accelerometer readings at stamps t [M] (uniform rate).
+class ImuSimulator:
+    """Gyro and accelerometer readings along ``traj`` on a uniform grid of period ``dt``, produced over consecutive
+    chunks of stamps: biases walk on, the noise streams continue and the vibration filter keeps its state, so any
+    split of the grid gives the same samples as one call over all of it (up to rounding).
 
-    gyro = omega_B + bg + n_g;  accel = R_WB^T (a_W - g_W) + ba + n_a, with g_W = [0, 0, -9.81].
-    White noise sigma = density * sqrt(rate); biases follow random walks of sigma = rw * sqrt(dt) per step,
-    starting at bg0/ba0. ``with_orientation`` adds the exact attitude quaternion as a flight controller would.
+    gyro = omega_B + bg + n_g (+ vibration); accel = R_WB^T (a_W - g_W) + ba + n_a (+ vibration), with
+    g_W = [0, 0, -9.81]. White noise sigma = density / sqrt(dt); biases follow random walks of sigma = rw * sqrt(dt)
+    per step, starting at bg0/ba0. ``with_orientation`` adds the exact attitude quaternion as a flight controller
+    would. Each noise source draws from its own stream of ``seed``.
     """
+
+    def __init__(self, traj: Trajectory, *, dt: float, noise: ImuNoise = EUROC_NOISE, bg0: np.ndarray | None = None,
+                 ba0: np.ndarray | None = None, seed: int = 0, vibration: Vibration | None = None,
+                 with_orientation: bool = False) -> None:
+        self.traj, self.dt, self.noise, self.with_orientation = traj, float(dt), noise, with_orientation
+        self._bg = np.zeros(3) if bg0 is None else np.asarray(bg0, dtype=np.float64)
+        self._ba = np.zeros(3) if ba0 is None else np.asarray(ba0, dtype=np.float64)
+        self._rng = [np.random.default_rng([seed, k]) for k in range(5)]
+        self._started = False
+        self._vibration = vibration
+        if vibration is not None:
+            nyquist = 0.5 / self.dt
+            self._sos = butter(4, vibration.cutoff_hz / nyquist, btype="highpass", output="sos")
+            impulse = np.zeros(4096)
+            impulse[0] = 1.0
+            gain = np.sqrt(np.sum(sosfilt(self._sos, impulse) ** 2))  # RMS of filtered unit white noise
+            self._vib_scale = np.concatenate([vibration.gyro_rms, vibration.accel_rms]) / gain
+            self._zi = np.zeros((len(self._sos), 2, 6))  # filter state [sections, 2, channels], at rest
+
+    def __call__(self, t: np.ndarray) -> SimulatedImu:
+        """The samples at the next stamps t [M] (continuing the previous call's grid)."""
+        t = np.asarray(t, dtype=np.float64)
+        M = len(t)
+        R = self.traj.rotation(t)
+        a_W = self.traj.acceleration_W(t) - np.array([0.0, 0.0, -GRAVITY])
+        f_B = np.einsum("nji,nj->ni", R, a_W)
+        w_B = self.traj.angular_velocity_B(t)
+        n = self.noise
+
+        def walk(b0, rw, rng):
+            steps = rng.standard_normal((M, 3)) * rw * np.sqrt(self.dt)
+            if not self._started and M:
+                steps[0] = 0.0  # the first sample of the grid has bias b0 exactly
+            return b0 + np.cumsum(steps, axis=0)
+
+        bg, ba = walk(self._bg, n.gyro_random_walk, self._rng[0]), walk(self._ba, n.accel_random_walk, self._rng[1])
+        gyro = w_B + bg + self._rng[2].standard_normal((M, 3)) * n.gyro_noise_density / np.sqrt(self.dt)
+        accel = f_B + ba + self._rng[3].standard_normal((M, 3)) * n.accel_noise_density / np.sqrt(self.dt)
+        if self._vibration is not None:
+            vib, self._zi = sosfilt(self._sos, self._rng[4].standard_normal((M, 6)), axis=0, zi=self._zi)
+            vib *= self._vib_scale
+            gyro, accel = gyro + vib[:, :3], accel + vib[:, 3:]
+        if M:
+            self._bg, self._ba, self._started = bg[-1], ba[-1], True
+        ori = so3.R_to_quat(R) if self.with_orientation else None
+        return SimulatedImu(ImuSamples(t, gyro, accel, ori), bg, ba)
+
+
+def simulate_imu(traj: Trajectory, t: np.ndarray, *, noise: ImuNoise = EUROC_NOISE,
+                 bg0: np.ndarray | None = None, ba0: np.ndarray | None = None, seed: int = 0,
+                 vibration: Vibration | None = None, with_orientation: bool = False) -> SimulatedImu:
+    """``ImuSimulator`` over the stamps t [M] (uniform rate) in one call."""
     t = np.asarray(t, dtype=np.float64)
-    rng = np.random.default_rng(seed)
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.005
-    M = len(t)
-    R = traj.rotation(t)
-    a_W = traj.acceleration_W(t) - np.array([0.0, 0.0, -GRAVITY])
-    f_B = np.einsum("nji,nj->ni", R, a_W)
-    w_B = traj.angular_velocity_B(t)
-
-    def walk(b0, rw):
-        b0 = np.zeros(3) if b0 is None else np.asarray(b0, dtype=np.float64)
-        steps = rng.standard_normal((M, 3)) * rw * np.sqrt(dt)
-        steps[0] = 0.0
-        return b0 + np.cumsum(steps, axis=0)
-
-    bg, ba = walk(bg0, noise.gyro_random_walk), walk(ba0, noise.accel_random_walk)
-    gyro = w_B + bg + rng.standard_normal((M, 3)) * noise.gyro_noise_density / np.sqrt(dt)
-    accel = f_B + ba + rng.standard_normal((M, 3)) * noise.accel_noise_density / np.sqrt(dt)
-    ori = None
-    if with_orientation:
-        from vi3_core import so3
-
-        ori = so3.R_to_quat(R)
-    return SimulatedImu(ImuSamples(t, gyro, accel, ori), bg, ba)
+    return ImuSimulator(traj, dt=dt, noise=noise, bg0=bg0, ba0=ba0, seed=seed, vibration=vibration,
+                        with_orientation=with_orientation)(t)

@@ -14,7 +14,7 @@ import numpy as np
 
 from vi3_core import so3
 from vi3_core.sim.euroc import CAMERA_RATE_HZ, IMU_RATE_HZ, T_BS_CAM0
-from vi3_core.sim.imu import EUROC_NOISE, ImuNoise, imu_stamps, simulate_imu
+from vi3_core.sim.imu import EUROC_NOISE, ImuNoise, default_vibration, draw_accel_bias, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
 from vi3_core.types import Geometry, ImuSamples
 
@@ -79,31 +79,34 @@ class InitCase:
     T_B1Bi: np.ndarray
 
 
-def make_init_case(seed: int, *, kind: str = "drone", n: int = 8, stride: int = 2, scale: float | None = None,
-                   pose_noise: PoseNoise = PoseNoise(), imu_noise: ImuNoise = EUROC_NOISE, bg_sigma: float = 0.02,
-                   ba: float = 0.1, depth_m: float = 3.0, with_orientation: bool = False) -> InitCase:
+def make_init_case(seed: int, *, kind: str = "drone", motion: str = "medium", n: int = 8, stride: int = 2,
+                   scale: float | None = None, pose_noise: PoseNoise | None = None, imu_noise: ImuNoise = EUROC_NOISE,
+                   accel_bias: bool = True, bg_sigma: float = 0.02, depth_m: float = 3.0,
+                   with_orientation: bool = False) -> InitCase:
     """A clip of n frames at ``stride`` x 20 Hz with 200 Hz IMU, EuRoC extrinsics and noise.
 
-    scale: drawn log-uniformly in [0.1, 10] when None; gyro bias drawn N(0, bg_sigma) per axis; accelerometer bias of
-    magnitude ``ba`` m/s^2 in a random direction (EuRoC's reach 0.05-0.2; none with a noise-free IMU); the
+    motion: the drone's motion preset (``vi3_core.sim.trajectory.MOTIONS``); scale: drawn log-uniformly in
+    [0.1, 10] when None; pose_noise: the 3DFM-like errors of the poses (none by default); gyro bias drawn
+    N(0, bg_sigma) per axis; with ``accel_bias`` and a noisy IMU, an accelerometer bias of EuRoC's size
+    (``draw_accel_bias``), else none (a noise-free IMU stays exact); the
     geometry's depth is a constant ``depth_m`` metres (in model units) so that parallax checks see a real scene depth.
     """
     rng = np.random.default_rng(seed)
-    traj = make_trajectory(kind, seed=seed)
+    traj = make_trajectory(kind, seed=seed, motion=motion)
     if scale is None:
         scale = float(np.exp(rng.uniform(np.log(0.1), np.log(10.0))))
     t0 = rng.uniform(5.0, 50.0)
     stamps = t0 + np.arange(n) * stride / CAMERA_RATE_HZ + rng.uniform(0.0, 1.0 / IMU_RATE_HZ)
     bg = rng.normal(0.0, bg_sigma, 3)
-    ba0 = rng.standard_normal(3)
-    ba0 *= ba / np.linalg.norm(ba0) if imu_noise.accel_noise_density > 0 else 0.0
-    imu = simulate_imu(traj, imu_stamps(stamps[0] - 0.02, stamps[-1] + 0.02), noise=imu_noise, bg0=bg, ba0=ba0,
-                       seed=seed + 1, with_orientation=with_orientation)
+    imu = simulate_imu(traj, imu_stamps(stamps[0] - 0.02, stamps[-1] + 0.02), noise=imu_noise, bg0=bg,
+                       ba0=draw_accel_bias(rng) if accel_bias and imu_noise.accel_noise_density > 0 else None,
+                       seed=seed + 1, with_orientation=with_orientation,
+                       vibration=default_vibration(motion, imu_noise != ImuNoise.zero() and kind != "stationary"))
     T_WB = traj.T_WB(stamps)
     T_B1Bi = so3.inv_T(T_WB[0]) @ T_WB
     T_BC = T_BS_CAM0
     T_wc = so3.inv_T(T_BC) @ T_B1Bi @ T_BC
-    poses = noisy_poses(T_wc, scale=scale, noise=pose_noise, rng=rng)
+    poses = noisy_poses(T_wc, scale=scale, noise=pose_noise or PoseNoise(), rng=rng)
     geometry = Geometry(T_wc=poses, K=np.tile(np.eye(3), (n, 1, 1)), depth=np.full((n, 4, 4), depth_m / scale),
                         conf=np.ones((n, 4, 4)), metric=False)
     R1 = T_WB[0, :3, :3]

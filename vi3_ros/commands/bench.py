@@ -31,6 +31,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu")
     p.add_argument("--input", default=None, help="input sequence for the replay benchmark")
     p.add_argument("--seconds", type=float, default=None, help="length of the generated replay input (default 20)")
+    p.add_argument("--realtime", action="store_true", help="replay benchmark: at the recorded rate into the node's "
+                   "worker thread (vi3 replay --realtime)")
+    p.add_argument("--backbone-delay", type=float, default=None, metavar="S",
+                   help="replay benchmark: S seconds added to every clip (parameter backbone_delay)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="replay benchmark: any node parameter")
     p.set_defaults(func=run)
 
 

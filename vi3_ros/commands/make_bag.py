@@ -1,76 +1,153 @@
-"""``vi3 make-bag OUT``: generate an EuRoC-format sequence with exact ground truth and write it the ways EuRoC and
-its users do: ``OUT/asl/mav0/...`` (ASL folder, plus ground-truth depth in ``depth0/``), ``OUT/ros1.bag`` (ROS 1,
+"""``vi3 make-bag OUT``: an EuRoC-format sequence with exact ground truth, written the ways EuRoC and its users
+have it: ``OUT/asl/mav0/...`` (ASL folder, plus ground-truth depth in ``depth0/``), ``OUT/ros1.bag`` (ROS 1,
 written with rosbags) and ``OUT/mcap/`` (rosbag2 MCAP converted from the ROS 1 bag with rosbags' converter), with
-the camera calibration as a Kalibr ``OUT/camchain-imucam.yaml``. The same seed gives identical image bytes and IMU
-values.
+the camera calibration as a Kalibr ``OUT/camchain-imucam.yaml``.
+
+Generated sequences fly a motion preset (``--motion``: easy, medium, difficult matched to EuRoC's statistics, or
+agile) with an accelerometer bias of EuRoC's size unless ``--no-accel-bias``; ``--from-euroc MAV0_DIR`` renders
+the scene along a real EuRoC ground-truth trajectory instead and carries its IMU samples unchanged. The same seed
+gives identical image bytes and IMU values.
+
+Everything is written into a hidden ``OUT/.vi3-generating.<pid>.*`` folder, a block of time at a time (memory
+does not grow with the length), and moved into place only when complete: an error, Ctrl-C or SIGTERM leaves no
+partial output, and a later run removes such folders left by runs that were killed.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
+
+OUTPUTS = ("asl", "ros1.bag", "mcap", "camchain-imucam.yaml")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     from vi3_core.render.scene import SCENES
+    from vi3_core.sim.trajectory import MOTIONS
 
     p = sub.add_parser("make-bag", help="generate an EuRoC-format sequence (ASL, ROS 1 bag, rosbag2 MCAP)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", help="output folder")
-    p.add_argument("--seconds", type=float, default=20.0, help="duration in seconds (default 20)")
+    p.add_argument("--seconds", type=float, default=None,
+                   help="duration in seconds (default 20; with --from-euroc: all the recording covers)")
     p.add_argument("--seed", type=int, default=0, help="random seed: scene, trajectory, IMU noise (default 0)")
     p.add_argument("--scene", default="room", choices=sorted(SCENES), help="scene (default room)")
+    p.add_argument("--motion", default=None, choices=MOTIONS,
+                   help="motion preset: easy, medium, difficult (EuRoC-like, see docs/evaluation.md) or agile "
+                        "(slow drift with quick small manoeuvres); default medium")
+    p.add_argument("--no-accel-bias", action="store_true",
+                   help="zero initial accelerometer bias (default: 0.05-0.2 m/s^2 in a random direction)")
+    p.add_argument("--noise-free-imu", action="store_true",
+                   help="IMU without noise, bias random walk or vibration (constant biases)")
+    p.add_argument("--from-euroc", metavar="MAV0_DIR", default=None,
+                   help="render along this real EuRoC recording's ground truth and carry its IMU unchanged "
+                        "(needs imu0/, state_groundtruth_estimate0/ and cam0/sensor.yaml; no images)")
+    p.add_argument("--start", type=float, default=0.0,
+                   help="with --from-euroc: start the camera stream this many seconds into the recording (default 0)")
     p.add_argument("--no-depth", action="store_true", help="skip the ground-truth depth maps (faster, smaller)")
-    p.add_argument("--noise-free-imu", action="store_true", help="IMU without noise or bias random walk")
-    p.add_argument("--overwrite", action="store_true", help="replace existing bags in OUT")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs in OUT")
     p.set_defaults(func=run)
 
 
-def make_bag(out, *, seconds: float, seed: int, scene: str = "room", with_depth: bool = True,
-             imu_noise: bool = True, overwrite: bool = False) -> dict[str, float]:
-    """Write the three forms of one sequence into ``out``; returns the seconds each stage took."""
+def make_bag(out, spec, *, overwrite: bool = False, workers: int = 2) -> dict[str, float]:
+    """Write the three forms of the sequence ``spec`` (a ``SequenceSpec``) into ``out``; returns the seconds each
+    stage took. Raises DataError for an output that cannot be written."""
     from vi3_core.dataset.calib import write_kalibr_camchain
-    from vi3_core.dataset.generate import EUROC_CAM0, generate_sequence
+    from vi3_core.dataset.generate import staging_dir, write_sequence
     from vi3_core.errors import DataError
     from vi3_ros.io.convert import convert_to_rosbag2
-    from vi3_ros.io.ros1 import write_ros1_bag
+    from vi3_ros.io.ros1 import Ros1BagWriter
     from vi3_ros.io.topics import IMAGE_TOPIC
 
     out = Path(out)
-    bag, mcap = out / "ros1.bag", out / "mcap"
-    if bag.exists() or mcap.exists():
-        if not overwrite:
-            raise DataError(f"{out}: already holds ros1.bag or mcap/; pass --overwrite to replace them")
-        bag.unlink(missing_ok=True)
-        shutil.rmtree(mcap, ignore_errors=True)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"{out}: is a file; make-bag writes a folder")
+    existing = [name for name in OUTPUTS if (out / name).exists()]
+    if existing and not overwrite:
+        raise DataError(f"{out}: already holds {', '.join(existing)}; pass --overwrite to replace them")
+    created = not out.exists()
+    stage = staging_dir(out)
     times = {}
-    t = time.perf_counter()
-    generate_sequence(out / "asl", seconds=seconds, seed=seed, scene=scene, imu_noise=imu_noise,
-                      with_depth=with_depth)
-    times["asl_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    write_ros1_bag(out / "asl", bag)
-    times["ros1_bag_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    convert_to_rosbag2(bag, mcap, storage="mcap")
-    times["mcap_s"] = time.perf_counter() - t
-    write_kalibr_camchain(EUROC_CAM0, out / "camchain-imucam.yaml", rostopic=IMAGE_TOPIC)
+    try:
+        t = time.perf_counter()
+        with Ros1BagWriter(stage / "ros1.bag") as bag:
+            calib = write_sequence(stage / "asl" / "mav0", spec, workers=workers, on_block=lambda b: bag.write(
+                b.cam_ns, b.images.__getitem__, b.imu_ns, b.imu, b.gt_ns, b.T_WB))
+        times["asl_and_ros1_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        convert_to_rosbag2(stage / "ros1.bag", stage / "mcap", storage="mcap")
+        times["mcap_s"] = time.perf_counter() - t
+        write_kalibr_camchain(calib, stage / "camchain-imucam.yaml", rostopic=IMAGE_TOPIC)
+        for name in OUTPUTS:
+            target = out / name
+            if target.is_dir():
+                shutil.rmtree(target)
+            elif target.exists():
+                target.unlink()
+            os.rename(stage / name, target)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
     return times
+
+
+class _Terminated(BaseException):
+    """SIGTERM as an exception, so that cleanup runs (BaseException: no library's ``except Exception`` eats it)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise _Terminated(signal.Signals(signum).name)
+
+
+def _spec(args: argparse.Namespace):
+    from vi3_core.dataset.generate import SequenceSpec
+    from vi3_core.errors import DataError
+
+    if args.from_euroc is not None:
+        given = [flag for flag, on in (("--motion", args.motion is not None), ("--no-accel-bias", args.no_accel_bias),
+                                       ("--noise-free-imu", args.noise_free_imu)) if on]
+        if given:
+            raise DataError(f"{', '.join(given)}: only for generated sequences; --from-euroc carries the "
+                            "recording's own IMU and motion")
+    return SequenceSpec(seconds=args.seconds if args.seconds is not None or args.from_euroc else 20.0,
+                        seed=args.seed, scene=args.scene, motion=args.motion or "medium",
+                        accel_bias=not args.no_accel_bias, imu_noise=not args.noise_free_imu,
+                        with_depth=not args.no_depth, from_euroc=args.from_euroc, start_s=args.start)
 
 
 def run(args: argparse.Namespace) -> int:
     from vi3_core.errors import DataError
 
+    def fail(reason: str, code: int = 2) -> int:
+        print(f"vi3 make-bag: error: {reason}", file=sys.stderr)
+        return code
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if main_thread else None
     t0 = time.perf_counter()
     try:
-        times = make_bag(args.out, seconds=args.seconds, seed=args.seed, scene=args.scene,
-                         with_depth=not args.no_depth, imu_noise=not args.noise_free_imu, overwrite=args.overwrite)
+        times = make_bag(args.out, _spec(args), overwrite=args.overwrite)
     except DataError as err:
-        print(f"vi3 make-bag: error: {err}")
-        return 2
-    stages = ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in times.items())
+        return fail(str(err))
+    except OSError as err:  # a read-only folder, a full disk, an unreadable recording
+        path = Path(err.filename) if err.filename else Path(args.out)
+        verb = "cannot write" if Path(args.out) in (path, *path.parents) else "cannot read"
+        return fail(f"{verb} {path}: {err.strerror or err}")
+    except (KeyboardInterrupt, _Terminated) as err:
+        name = str(err) or "SIGINT"
+        return fail(f"interrupted by {name}; nothing written (partial output removed)",
+                    128 + int(getattr(signal, name, signal.SIGINT)))
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    stages = ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in times.items())
     print(f"wrote {args.out}/asl/mav0, {args.out}/ros1.bag, {args.out}/mcap/ and {args.out}/camchain-imucam.yaml "
           f"in {time.perf_counter() - t0:.1f} s ({stages})")
     return 0

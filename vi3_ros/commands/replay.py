@@ -25,6 +25,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "parameter image_topic when the input has it, else the only image topic)")
     p.add_argument("--imu-topic", help="IMU topic to read (default: the parameter imu_topic when the input has it, "
                    "else the only sensor_msgs/Imu topic)")
+    p.add_argument("--realtime", action="store_true", help="feed the input at its recorded rate into the node's "
+                   "latest-wins worker: what the node would publish on this machine, clips the busy worker drops "
+                   "included (default: every clip, in order, as fast as possible)")
+    p.add_argument("--backbone-delay", type=float, metavar="S", help="add S seconds to every clip's processing, to "
+                   "emulate a slower model (parameter backbone_delay)")
     p.add_argument("--force", action="store_true", help="replace an existing OUT (an MCAP file or rosbag2 folder)")
     p.add_argument("--copy-inputs", action="store_true", help="also write the input images and IMU")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -38,7 +43,8 @@ def values_from_args(args: argparse.Namespace) -> dict:
 
     overrides = load_yaml(args.params_file) if args.params_file else {}
     overrides.update(parse_assignment(a) for a in args.param)
-    named = {"backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device}
+    named = {"backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device,
+             "backbone_delay": args.backbone_delay}
     overrides.update({k: v for k, v in named.items() if v is not None})
     return resolve(overrides)
 
@@ -54,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = replay(args.input, args.output, values=values_from_args(args), copy_inputs=args.copy_inputs,
                          progress=not args.no_progress and sys.stderr.isatty(), force=args.force,
-                         image_topic=args.image_topic, imu_topic=args.imu_topic)
+                         image_topic=args.image_topic, imu_topic=args.imu_topic, realtime=args.realtime)
     except ReplayInterrupted as exc:
         signum = _received[-1] if _received else signal.SIGINT
         print(f"vi3 replay: interrupted by {signal.Signals(signum).name}; {kept_text(exc.partial)}", file=sys.stderr)

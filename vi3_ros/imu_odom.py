@@ -1,0 +1,116 @@
+"""``~/odom/imu``: odometry at IMU rate between clips, shared by the node and replay (``vi3_ros.pipeline``).
+
+After each chained clip the Pipeline calls ``restart`` with the new odom state and the IMU recorded since its last
+frame (the worker thread; in the node the clip lands seconds after its frames, so the propagation catches up first);
+every IMU sample then goes to ``add`` (the input thread), which advances ``vi3_core.online.propagator.ImuPropagator``
+and publishes ``nav_msgs/Odometry`` at most ``imu_odom_rate`` times per second of IMU time (every sample when that is
+the IMU's rate or more), stamped with the sample's own stamp. Pose covariance over (x, y, z, rot x, rot y, rot z) in
+``odom_frame``: ``propagation_sigmas`` since the last chained frame (zero at it; the chained pose's own uncertainty in
+odom is not modelled); twist covariance in ``base_frame``: the velocity sigma and the gyro's white noise per sample.
+Nothing is published before the first chained clip, nor once the propagation stopped (an IMU gap longer than
+``max_imu_gap``, a non-finite sample, or ``online_max_bridge`` s without a chained clip): ``status`` says why.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from msg_adapters.poses import odometry
+from msg_adapters.types import MessageTypes
+from vi3_core.init.options import InitOptions
+from vi3_core.online import OdomState
+from vi3_core.online.propagator import ImuPropagator, PropagatedStates, propagation_sigmas
+from vi3_core.types import ImuSamples
+
+
+def covariances(states: PropagatedStates, state: OdomState, options: InitOptions,
+                sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(pose covariance [m,6,6] in odom, twist covariance [m,6,6] in the body frame) of propagated ``states``, from
+    ``state``'s sigmas and ``options``' IMU noise model; ``sample_dt`` s: the IMU sample interval (gyro noise)."""
+    s = propagation_sigmas(states.tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
+                           gravity_norm=options.gravity_norm)
+    m = len(states)
+    pose = np.zeros((m, 6, 6))
+    idx = np.arange(6)
+    pose[:, idx, idx] = np.stack([s.position_h, s.position_h, s.position_v, s.tilt, s.tilt, s.yaw], -1) ** 2
+    twist = np.zeros((m, 6, 6))
+    gyro_var = options.gyro_noise_density**2 / max(sample_dt, 1e-6)
+    twist[:, idx, idx] = np.concatenate([np.repeat(s.velocity[:, None] ** 2, 3, 1), np.full((m, 3), gyro_var)], 1)
+    return pose, twist
+
+
+class ImuOdometry:
+    """The IMU-rate odometry of one stream; thread-safe (``restart`` on the worker thread, ``add`` on the input
+    thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``values`` its parameters. Lock order: ``restart``
+    calls ``imu_since`` (which takes the Pipeline's lock) under this object's lock, so the Pipeline must not call
+    into this object while it holds its own."""
+
+    def __init__(self, values: dict[str, Any], *, init_options: InitOptions, max_tau_s: float, types: MessageTypes,
+                 publish: Callable[[str, Any, int], None]) -> None:
+        self.period_ns = round(1e9 / values["imu_odom_rate"])
+        self.frame, self.child = values["odom_frame"], values["base_frame"]
+        self.options, self.max_tau_s = init_options, max_tau_s
+        self.types, self._publish = types, publish
+        self._lock = threading.Lock()
+        self._prop: ImuPropagator | None = None
+        self._state: OdomState | None = None
+        self._next_ns: int | None = None  # the next publication is due at the first sample at or after this stamp
+        self._last_ns: int | None = None  # the previous sample's stamp
+        self.published = 0
+
+    @property
+    def status(self) -> str:
+        """``waiting`` (no chained clip yet), ``running`` or ``stopped: <why>``."""
+        with self._lock:
+            if self._prop is None:
+                return "waiting"
+            return f"stopped: {self._prop.stopped}" if self._prop.stopped else "running"
+
+    def restart(self, state: OdomState, imu_since: Callable[[float], ImuSamples | None]) -> None:
+        """Start over from a newly chained ``state``, catching up through ``imu_since(t)`` (the samples recorded from
+        at or before t s to the newest; None: none), read while no sample can slip in between."""
+        prop = ImuPropagator(state, gravity_norm=self.options.gravity_norm, max_gap_s=self.options.max_imu_gap_s,
+                             max_tau_s=self.max_tau_s)
+        with self._lock:
+            imu = imu_since(prop.t_c)
+            if imu is not None:
+                prop.advance(imu)
+            self._prop, self._state = prop, state
+
+    def add(self, stamp_ns: int, gyro, accel) -> None:
+        """One IMU sample (stamp in IMU time, ns; gyro [3] rad/s; accel [3] m/s^2): propagate, and publish when
+        due."""
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            last = self._last_ns
+            if last is not None and stamp_ns <= last:
+                return
+            self._last_ns = stamp_ns
+            prop, state = self._prop, self._state
+            if prop is None or prop.stopped:
+                return
+            states = prop.advance(ImuSamples(np.array([stamp_ns * 1e-9]), np.reshape(gyro, (1, 3)),
+                                             np.reshape(accel, (1, 3))))
+            if not len(states) or not self._due(stamp_ns, last):
+                return
+        dt = (stamp_ns - last) * 1e-9 if last is not None else 1e-9 * self.period_ns
+        pose_cov, twist_cov = covariances(states, state, self.options, dt)
+        T = states.T_OB[0]
+        msg = odometry(T, T[:3, :3].T @ states.v_O[0], states.omega[0], stamp_ns=stamp_ns, frame_id=self.frame,
+                       child_frame_id=self.child, types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
+        self._publish("odom_imu", msg, stamp_ns)
+        self.published += 1
+
+    def _due(self, stamp_ns: int, last_ns: int | None) -> bool:
+        """Whether the sample at ``stamp_ns`` is published: the first sample within half a sample interval of the
+        due stamp (stamps jitter), the due stamps ``period_ns`` apart (re-anchored after a pause)."""
+        half = (stamp_ns - last_ns) // 2 if last_ns is not None else 0
+        if self._next_ns is not None and stamp_ns < self._next_ns - half:
+            return False
+        nxt = (self._next_ns or stamp_ns) + self.period_ns
+        self._next_ns = nxt if nxt > stamp_ns else stamp_ns + self.period_ns
+        return True
