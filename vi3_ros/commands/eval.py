@@ -82,8 +82,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write TUM trajectories (for evo) here: per clip, and the chained odom_vi3.txt / odom_gt.txt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
-                   help="evaluate on Ray workers: a local instance on this machine's cores without ADDRESS (or "
-                        "RAY_ADDRESS when set), else the cluster at ADDRESS (auto, HEAD_HOST:6379 or "
+                   help="evaluate on Ray workers: without ADDRESS on RAY_ADDRESS, a cluster started with `ray start` "
+                        "here, or else a new local instance on this machine's cores; else on the cluster at ADDRESS "
+                        "(auto, local, HEAD_HOST:6379 or "
                         "ray://HEAD_HOST:10001); every node must see the inputs at the same path. Put it after the "
                         "inputs (or write --ray=ADDRESS). Needs Ray: pip install '.[ray]' in a clone")
     p.add_argument("--ray-cpus-per-task", type=_non_negative, default=None, metavar="N",
@@ -368,7 +369,7 @@ def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, back
     from vi3_core.eval import distributed, runner
 
     task_options = dataclasses.replace(options, progress=False)
-    variants = (runner.ablation_options(task_options) if args.ablate else {"": task_options})
+    variants = runner.ablation_options(task_options) if args.ablate else {"": task_options}
     jobs = [distributed.Job(os.path.abspath(r.path), r.name, opts, tuple(r.clips), chained=_chained(args))
             for r in runs for opts in variants.values()]
     connected = distributed.connect(args.ray or None)
@@ -397,7 +398,7 @@ def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, back
             item.variants = {name: p.evals for name, p in parts.items()}
         else:
             item.evals, item.online = parts[""].evals, parts[""].online
-        if item.evals or any(item.variants.values()):
+        if item.evals or item.online is not None or any(item.variants.values()):
             _report(args, item)
     return ran.interrupted
 
