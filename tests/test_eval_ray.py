@@ -9,6 +9,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -164,12 +165,12 @@ def test_ctrl_c_stops_the_workers_and_returns_what_finished(local_ray, sequence_
     assert res.errors == [f"interrupted (Ctrl-C): {len(res.evals)} of {len(clips)} clips evaluated"]
 
 
-def _read_until(proc: subprocess.Popen, needle: bytes, timeout_s: float) -> bytes:
-    """What ``proc`` wrote on stderr up to ``needle`` (or its exit, or ``timeout_s``)."""
+def _read_until(proc: subprocess.Popen, pattern: bytes, timeout_s: float) -> bytes:
+    """What ``proc`` wrote on stderr up to a match of the regex ``pattern`` (or its exit, or ``timeout_s``)."""
     seen, deadline = b"", time.monotonic() + timeout_s
     with selectors.DefaultSelector() as sel:
         sel.register(proc.stderr, selectors.EVENT_READ)
-        while needle not in seen and time.monotonic() < deadline:
+        while not re.search(pattern, seen) and time.monotonic() < deadline:
             if sel.select(timeout=1.0):
                 chunk = os.read(proc.stderr.fileno(), 4096)
                 if not chunk:
@@ -186,13 +187,14 @@ def test_ctrl_c_in_the_terminal_writes_what_finished_marked_partial(local_ray, r
     proc = subprocess.Popen([sys.executable, "-m", "vi3_ros.cli", "eval", str(sequence_dir), "--independent",
                              "--clips", "sliding", "--hop", "2", "--json-out", str(json_out), "--ray", address],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
-    seen = _read_until(proc, b" 2/14 ", timeout_s=180)  # the bar counts finished clips
+    # the bar counts finished clips and may skip counts when several come back at once
+    seen = _read_until(proc, rb" ([1-9]|1[0-3])/14 ", timeout_s=180)
     os.killpg(proc.pid, signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     err = (seen + err).decode()
     assert proc.returncode == 128 + signal.SIGINT, err
     obj = json.loads(json_out.read_text())
-    assert obj["partial"] is True and 2 <= obj["n_clips"] < 14, obj.get("errors")
+    assert obj["partial"] is True and 1 <= obj["n_clips"] < 14, obj.get("errors")
     assert obj["errors"] == [f"{obj['sequence']}: interrupted (Ctrl-C): {obj['n_clips']} of 14 clips evaluated"]
     assert "PARTIAL" in out.decode() and "Traceback" not in err
 
