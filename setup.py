@@ -34,7 +34,10 @@ setup(
         "pyyaml>=6.0",
     ],
     extras_require={
-        "test": ["pytest>=8", "hypothesis>=6.100", "ruff>=0.6", "filelock>=3.12"],
+        # vi3 eval --ray: evaluation on a Ray cluster (vi3_core.eval.distributed); in the test extra so the suite
+        # covers it.
+        "ray": ["ray>=2.9"],
+        "test": ["pytest>=8", "hypothesis>=6.100", "ruff>=0.6", "filelock>=3.12", "ray>=2.9"],
     },
     entry_points={
         "console_scripts": [

@@ -25,3 +25,8 @@ class ModeNotSupported(Vi3Error):
 
 class DeviceUnavailable(Vi3Error):
     """The torch device asked for does not exist here (no CUDA, no such GPU, a malformed name)."""
+
+
+class ClusterUnavailable(Vi3Error):
+    """A distributed evaluation cannot run: Ray is not installed, its cluster cannot be reached, has too few
+    resources for one worker, or a worker cannot build the backbone; the message says which and what to do."""

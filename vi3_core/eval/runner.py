@@ -111,6 +111,16 @@ def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indic
                     init_metrics=metrics.init_metrics(result.init, clip.gt))
 
 
+def evaluate_frames(seq: Sequence, idx: np.ndarray, backbone: Backbone, *, options: EvalOptions) -> ClipEval:
+    """``evaluate_clip`` on the clip of ``seq``'s frames ``idx`` [n] (one clip of ``evaluate_sequence``)."""
+    return evaluate_clip(make_clip(seq, idx, with_images=backbone.needs_images), backbone, options=options, indices=idx)
+
+
+def clip_label(sequence: str, idx: np.ndarray) -> str:
+    """How reports name the clip of frames ``idx`` of ``sequence``."""
+    return f"sequence {sequence!r}, clip of frames {int(idx[0])}-{int(idx[-1])}"
+
+
 def clip_indices(n_frames: int, *, options: EvalOptions) -> list[np.ndarray]:
     """Frame indices of the clips to evaluate (``sample_clips``), thinned evenly to ``max_clips``."""
     clips = sample_clips(n_frames, n=options.n, stride=options.stride, mode=options.clips, hop=options.hop)
@@ -141,8 +151,8 @@ def check_sequence(seq: Sequence, *, options: EvalOptions) -> list[np.ndarray]:
 
 def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEval],
              online: OnlineRun | None = None) -> EvaluationStopped:
-    return EvaluationStopped(f"sequence {seq.name!r}, clip of frames {int(idx[0])}-{int(idx[-1])}: {err} (the "
-                             f"{len(evals)} clips before it were evaluated)", evals, online)
+    return EvaluationStopped(f"{clip_label(seq.name, idx)}: {err} (the {len(evals)} clips before it were evaluated)",
+                             evals, online)
 
 
 def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None) -> list[ClipEval]:
@@ -153,8 +163,7 @@ def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions
     for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
                     disable=not options.progress):
         try:
-            out.append(evaluate_clip(make_clip(seq, idx, with_images=backbone.needs_images), backbone, options=options,
-                                     indices=idx))
+            out.append(evaluate_frames(seq, idx, backbone, options=options))
         except (Vi3Error, ValueError, OSError) as err:
             raise _stopped(seq, idx, err, out) from err
     return out
@@ -164,10 +173,16 @@ def ablate(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = N
     """The supplementary initialisation ablations (``ABLATIONS``): one ``evaluate_sequence`` per variant, in
     ``init`` mode with the GT-free initialisation (the variants are its options), each variant's ``InitOptions``
     derived from ``options.init_options`` (or the defaults)."""
-    options = options or EvalOptions()
+    return {name: evaluate_sequence(seq, backbone, options=variant)
+            for name, variant in ablation_options(options or EvalOptions()).items()}
+
+
+def ablation_options(options: EvalOptions) -> dict[str, EvalOptions]:
+    """The options of each ``ABLATIONS`` variant: ``options`` in ``init`` mode with the GT-free initialisation and
+    the variant's ``InitOptions``, derived from ``options.init_options`` (or the defaults)."""
     base = options.init_options or InitOptions()
-    return {name: evaluate_sequence(seq, backbone, options=dataclasses.replace(
-                options, mode="init", init_source="vi3", init_options=dataclasses.replace(base, **overrides)))
+    return {name: dataclasses.replace(options, mode="init", init_source="vi3",
+                                      init_options=dataclasses.replace(base, **overrides))
             for name, overrides in ABLATIONS.items()}
 
 
@@ -209,12 +224,14 @@ def contiguity_gap(seq: Sequence, clips: list[np.ndarray], max_gap_s: float) -> 
 
 def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None,
                     online_options: OnlineOptions | None = None,
-                    clips: list[np.ndarray] | None = None) -> tuple[list[ClipEval], OnlineRun]:
+                    clips: list[np.ndarray] | None = None,
+                    on_clip: Callable[[int], None] | None = None) -> tuple[list[ClipEval], OnlineRun]:
     """``evaluate_sequence`` with the metric state carried across clips (``vi3_core.online``, GT-free): each clip's
     initialisation from the stream's priors, and the clips chained into one odom trajectory, scored against GT per
     segment. Clips that are not contiguous are still evaluated one by one, but their trajectory is not scored
-    (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap in the images). A clip
-    that fails raises ``EvaluationStopped`` with what was computed before it."""
+    (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap in the images);
+    ``on_clip(k)`` is called after the k-th clip is evaluated (progress beside the bar). A clip that fails raises
+    ``EvaluationStopped`` with what was computed before it."""
     options = options or EvalOptions()
     if options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
@@ -238,6 +255,8 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
         evals.append(ev)
         diag = ev.result.init.diagnostics
         free.append((diag["free_status"], diag["free_scale"], diag.get("free_scale_sigma", np.nan)))
+        if on_clip is not None:
+            on_clip(len(evals))
     return evals, _finish(seq, est, run, evals, free, clips)
 
 

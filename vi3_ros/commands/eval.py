@@ -10,18 +10,27 @@ reported, then the clips of all of them pooled (the paper's medians over clips);
 Every input and output path is checked before any clip is evaluated. A failure after that (a clip that cannot be
 read, an output that cannot be written) still writes what was computed, marked ``"partial": true`` with the
 errors, and exits with status 2.
+
+With ``--ray [ADDRESS]`` the clips (independent runs) or whole sequences (chained runs) are evaluated by a pool of
+Ray workers (``vi3_core.eval.distributed``), each building the backbone once and reading the inputs from their path,
+which every node must see; the report is the serial run's. A clip whose worker died is run again (twice at most);
+Ctrl-C stops the workers and writes what had finished, marked partial (exit status 130).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
+import re
+import signal
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 MODES = ("init", "cond", "ttr")  # = vi3_core.anchor.MODES, not imported here: that pulls in torch
 RESERVED_NAMES = ("sigma",)  # <stem>_sigma.png is the sigma plot's
+RAY_ADDRESS = re.compile(r"auto|local|(ray://)?[\w.\-\[\]:]+:\d+")  # what ray.init(address=...) connects to
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -72,22 +81,35 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--export-tum", default=None, metavar="DIR",
                    help="write TUM trajectories (for evo) here: per clip, and the chained odom_vi3.txt / odom_gt.txt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="evaluate on Ray workers: without ADDRESS on RAY_ADDRESS, a cluster started with `ray start` "
+                        "here, or else a new local instance on this machine's cores; else on the cluster at ADDRESS "
+                        "(auto, local, HEAD_HOST:6379 or "
+                        "ray://HEAD_HOST:10001); every node must see the inputs at the same path. Put it after the "
+                        "inputs (or write --ray=ADDRESS). Needs Ray: pip install '.[ray]' in a clone")
+    p.add_argument("--ray-cpus-per-task", type=_non_negative, default=None, metavar="N",
+                   help="CPUs each Ray worker reserves (default 1)")
+    p.add_argument("--ray-gpus-per-task", type=_non_negative, default=None, metavar="N",
+                   help="GPUs each Ray worker reserves, fractions allowed (default 0; --device cuda needs > 0)")
     p.set_defaults(func=run)
 
 
 @dataclass
 class Evaluated:
     """One input of the run: its unique ``name``, the opened sequence (kept only while it waits to be evaluated),
-    its JSON object and text (once evaluated), the clip evaluations and the chained run (None when independent),
-    and the ``error`` that stopped it ("" when none)."""
+    the frame indices of its clips, its JSON object and text (once evaluated), the clip evaluations and the chained
+    run (None when independent), the clip evaluations of each ablation variant (``--ablate``), and the ``error``
+    that stopped it ("" when none)."""
 
     name: str
     path: str
     seq: object = None
+    clips: list = field(default_factory=list)
     obj: dict = field(default_factory=dict)
     text: str = ""
     evals: list = field(default_factory=list)
     online: object = None
+    variants: dict = field(default_factory=dict)
     error: str = ""
 
 
@@ -96,9 +118,20 @@ def _chained(args: argparse.Namespace) -> bool:
 
 
 def _open(args: argparse.Namespace, path: str):
+    return _opener(args)(path)
+
+
+def _opener(args: argparse.Namespace, *, absolute: bool = False) -> functools.partial:
+    """A function that opens an input path with the run's calibration and topics (it pickles, for Ray workers;
+    ``absolute``: with the calibration's absolute path, for workers in another folder)."""
+    calib = os.path.abspath(args.calib) if absolute and args.calib else args.calib
+    return functools.partial(_open_path, calib=calib, image_topic=args.image_topic, imu_topic=args.imu_topic)
+
+
+def _open_path(path: str, **kwargs):
     from vi3_ros.io.reader import open_sequence
 
-    return open_sequence(path, calib=args.calib, image_topic=args.image_topic, imu_topic=args.imu_topic)
+    return open_sequence(path, **kwargs)
 
 
 def unique_names(names: list[str], reserved: tuple[str, ...] = RESERVED_NAMES) -> list[str]:
@@ -173,17 +206,26 @@ def _positive(text: str) -> int:
     return value
 
 
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
     # Imported here, not at module level: they pull in torch, and `vi3 --help` should stay fast.
     from vi3_core.errors import Vi3Error
 
     try:
         options, backbone, runs, outputs = _prepare(args)
+        interrupted = _evaluate_ray(args, runs, options, backbone) if args.ray is not None else False
     except (Vi3Error, ValueError, OSError) as exc:
         print(f"vi3 eval: error: {exc}", file=sys.stderr)
         return 2
-    for item in runs:
-        _evaluate(args, item, backbone, options)
+    if args.ray is None:
+        for item in runs:
+            _evaluate(args, item, backbone, options)
     obj, text = _combine(args, runs)
     errors = [f"{r.name}: {r.error}" for r in runs if r.error] + _write_outputs(args, runs, outputs)
     if errors:
@@ -195,30 +237,34 @@ def run(args: argparse.Namespace) -> int:
         errors.append(str(exc))
     for e in errors:
         print(f"vi3 eval: error: {e}", file=sys.stderr)
-    return 2 if errors else 0
+    return 128 + signal.SIGINT if interrupted else 2 if errors else 0
 
 
 def _backbone(args: argparse.Namespace):
-    """The backbone of ``--backbone``, or the ground-truth pose instrument for ``gt``."""
-    from vi3_core.backbones import make_backbone
+    """A function that builds the backbone of ``--backbone``, or the ground-truth pose instrument for ``gt`` (it
+    pickles, for Ray workers); the options are checked here."""
+    from vi3_core.backbones import backbone_class, make_backbone
 
     if args.backbone == "gt":
         from vi3_core.backbones.ground_truth import GroundTruthPoses
         from vi3_core.sim.visual import PoseNoise
 
-        return GroundTruthPoses(noise=PoseNoise.parse(args.gt_noise or "0,0"))
+        return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"))
     if args.gt_noise is not None:
         raise ValueError("--gt-noise needs --backbone gt (the ground-truth pose instrument)")
-    return make_backbone(args.backbone, device=args.device, checkpoint=args.checkpoint)
+    backbone_class(args.backbone)  # a known name
+    return functools.partial(make_backbone, args.backbone, device=args.device, checkpoint=args.checkpoint)
 
 
 def _prepare(args: argparse.Namespace) -> tuple:
-    """Options, backbone, one ``Evaluated`` per input (opened and checked: GT, calibration, enough frames; the
-    sequence itself kept only for a single input) and the output paths, all checked before any clip runs."""
+    """Options, backbone (with --ray, the function that builds it on the workers), one ``Evaluated`` per input
+    (opened and checked: GT, calibration, enough frames; the sequence itself kept only for a single input evaluated
+    here) and the output paths, all checked before any clip runs."""
     from vi3_core.anchor import AnchorOptions
     from vi3_core.errors import DataError, Vi3Error
     from vi3_core.eval import runner
 
+    _check_ray_args(args)
     clips = args.clips or ("sliding" if _chained(args) else "paper")
     options = runner.EvalOptions(
         mode=args.mode, init_source=args.init_source, clips=clips, n=args.n, stride=args.stride,
@@ -226,18 +272,20 @@ def _prepare(args: argparse.Namespace) -> tuple:
         anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
     check_outputs(args)
     runs, problems = [], []
+    keep = len(args.input) == 1 and args.ray is None
     for path in args.input:
         try:
             seq = _open(args, path)
-            runner.check_sequence(seq, options=options)
+            sampled = runner.check_sequence(seq, options=options)
         except (Vi3Error, ValueError, OSError) as exc:
             problems.append(f"input {path}: {exc}")
             continue
         if seq.depth_gt.startswith("unreadable"):
             print(f"vi3 eval: {path}: depth ground truth {seq.depth_gt}; the depth metrics will be null",
                   file=sys.stderr)
-        # Several inputs are reopened one at a time when evaluated: bags are read into memory whole.
-        runs.append(Evaluated(seq.name, path, seq=seq if len(args.input) == 1 else None,
+        # Several inputs are reopened one at a time when evaluated (bags are read into memory whole); Ray workers
+        # open their own.
+        runs.append(Evaluated(seq.name, path, seq=seq if keep else None, clips=sampled,
                               obj={"input": path, "depth_gt": seq.depth_gt}))
     if problems:
         raise DataError("; ".join(problems))
@@ -245,27 +293,21 @@ def _prepare(args: argparse.Namespace) -> tuple:
         item.name, item.obj = name, {"sequence": name, **item.obj}
     outputs = output_paths(args, [r.name for r in runs])
     backbone = _backbone(args)
-    return options, backbone, runs, outputs
+    return options, backbone if args.ray is not None else backbone(), runs, outputs
 
 
 def _evaluate(args: argparse.Namespace, item: Evaluated, backbone, options) -> None:
     """Evaluate one input into ``item``; a failure part-way keeps what was computed and names the error."""
     from vi3_core.errors import Vi3Error
-    from vi3_core.eval import report, runner
+    from vi3_core.eval import runner
 
     seq, item.seq = item.seq, None
-    meta = {"backbone": args.backbone, "sequence": item.name}
     try:
         seq = seq if seq is not None else _open(args, item.path)
         seq.name = item.name
         if args.ablate:
-            variants = runner.ablate(seq, backbone, options=options)
-            summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in variants.items()}
-            item.obj |= {"ablations": summaries}
-            item.text = report.format_ablation(summaries)
-            item.evals = next(iter(variants.values()))
-            return
-        if _chained(args):
+            item.variants = runner.ablate(seq, backbone, options=options)
+        elif _chained(args):
             item.evals, item.online = runner.evaluate_online(seq, backbone, options=options)
         else:
             item.evals = runner.evaluate_sequence(seq, backbone, options=options)
@@ -274,7 +316,20 @@ def _evaluate(args: argparse.Namespace, item: Evaluated, backbone, options) -> N
     except (Vi3Error, ValueError, OSError) as exc:
         item.error = str(exc)
         return
+    if not (args.ablate and item.error):
+        _report(args, item)
+
+
+def _report(args: argparse.Namespace, item: Evaluated) -> None:
+    """``item``'s JSON object and text from its clip evaluations (and chained run, or ablation variants)."""
+    from vi3_core.eval import report
+
+    meta = {"backbone": args.backbone, "sequence": item.name}
     if args.ablate:
+        summaries = {name: report.summarise(evals, mode="init", **meta) for name, evals in item.variants.items()}
+        item.obj |= {"ablations": summaries}
+        item.text = report.format_ablation(summaries)
+        item.evals = next(iter(item.variants.values()))
         return
     summary = report.summarise(item.evals, mode=args.mode, init_source=args.init_source, **meta)
     item.obj = {**item.obj, **summary, "input": item.path}
@@ -282,6 +337,70 @@ def _evaluate(args: argparse.Namespace, item: Evaluated, backbone, options) -> N
         item.obj["chained"] = report.chained_summary(item.online)
     item.text = "\n\n".join([report.format_clips(item.obj), report.format_tables(item.obj)]
                             + ([report.format_chained(item.obj["chained"], item.obj)] if item.online else []))
+
+
+def _check_ray_args(args: argparse.Namespace) -> None:
+    """ValueError for --ray-* options without --ray, an ADDRESS that is not one (an input taken for it), or a CUDA
+    device without a GPU per task; ClusterUnavailable, saying how to install it, when Ray is missing."""
+    per_task = [f"--ray-{kind}-per-task" for kind, v in (("cpus", args.ray_cpus_per_task),
+                                                         ("gpus", args.ray_gpus_per_task)) if v is not None]
+    if args.ray is None:
+        if per_task:
+            raise ValueError(f"{' and '.join(per_task)} need --ray")
+        return
+    from vi3_core.eval.distributed import import_ray
+
+    import_ray()
+    if args.ray and not RAY_ADDRESS.fullmatch(args.ray):
+        raise ValueError(f"--ray {args.ray}: not a Ray address (auto, local, HOST:PORT or ray://HOST:PORT); an input "
+                         "right after --ray is taken for its ADDRESS: put --ray after the inputs")
+    if args.device.startswith("cuda") and not args.ray_gpus_per_task:
+        raise ValueError(f"--device {args.device} with --ray needs --ray-gpus-per-task > 0 (Ray gives a worker only "
+                         "the GPUs it reserves)")
+
+
+def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, backbone) -> bool:
+    """Evaluate every input on Ray workers (``vi3_core.eval.distributed``) into ``runs``, as ``_evaluate`` does one
+    by one; True when Ctrl-C stopped it. Raises ClusterUnavailable when no worker can start."""
+    import dataclasses
+
+    from tqdm import tqdm
+
+    from vi3_core.eval import distributed, runner
+
+    task_options = dataclasses.replace(options, progress=False)
+    variants = runner.ablation_options(task_options) if args.ablate else {"": task_options}
+    jobs = [distributed.Job(os.path.abspath(r.path), r.name, opts, tuple(r.clips), chained=_chained(args))
+            for r in runs for opts in variants.values()]
+    connected = distributed.connect(args.ray or None)
+    try:
+        with tqdm(total=sum(len(j.clips) for j in jobs), unit="clip", desc="eval (ray)",
+                  disable=not options.progress) as bar:
+            ran = distributed.evaluate(
+                jobs, backbone=backbone, open_sequence=_opener(args, absolute=True),
+                cpus_per_task=1.0 if args.ray_cpus_per_task is None else args.ray_cpus_per_task,
+                gpus_per_task=args.ray_gpus_per_task or 0.0,
+                on_progress=lambda n: bar.update(n - bar.n),
+                on_event=lambda line: bar.write(f"vi3 eval: {line}", file=sys.stderr))
+    finally:
+        if connected:
+            import ray
+
+            ray.shutdown()
+    hosts = {w.split()[0] for w in ran.workers}
+    print(f"vi3 eval: ray: {len(ran.workers)} workers on {len(hosts)} node(s), {len(ran.retried)} tasks run again",
+          file=sys.stderr)
+    results = iter(ran.results)
+    for item in runs:
+        parts = {name: next(results) for name in variants}
+        item.error = "; ".join(e for p in parts.values() for e in p.errors)
+        if args.ablate:
+            item.variants = {name: p.evals for name, p in parts.items()}
+        else:
+            item.evals, item.online = parts[""].evals, parts[""].online
+        if item.evals or item.online is not None or any(item.variants.values()):
+            _report(args, item)
+    return ran.interrupted
 
 
 def _combine(args: argparse.Namespace, runs: list[Evaluated]) -> tuple[dict, str]:
