@@ -52,6 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --backbone gt: per-frame position (m) and rotation (deg) noise of the ground-truth "
                         "poses, and an optional random-walk position drift (m at the clip's last frame); default 0,0. "
                         "Works on recordings of IMU and ground truth without images")
+    p.add_argument("--gt-seed", type=int, default=0, metavar="N",
+                   help="with --backbone gt: seed of the noise (each clip's noise is drawn from N and its first "
+                        "stamp, so a run is repeatable); default 0")
     p.add_argument("--checkpoint", default=None, help="backbone checkpoint path (real 3DFMs)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--mode", choices=MODES, default="init",
@@ -249,9 +252,9 @@ def _backbone(args: argparse.Namespace):
         from vi3_core.backbones.ground_truth import GroundTruthPoses
         from vi3_core.sim.visual import PoseNoise
 
-        return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"))
-    if args.gt_noise is not None:
-        raise ValueError("--gt-noise needs --backbone gt (the ground-truth pose instrument)")
+        return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"), seed=args.gt_seed)
+    if args.gt_noise is not None or args.gt_seed:
+        raise ValueError("--gt-noise and --gt-seed need --backbone gt (the ground-truth pose instrument)")
     backbone_class(args.backbone)  # a known name
     return functools.partial(make_backbone, args.backbone, device=args.device, checkpoint=args.checkpoint)
 
