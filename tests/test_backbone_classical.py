@@ -24,6 +24,7 @@ from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.errors import CalibrationError, DataError, ModeNotSupported
 from vi3_core.eval.metrics import absrel_median_aligned, gt_camera_poses, resample_depth
+from vi3_core.threads import torch_threads
 
 #: Local grey-level standard deviation (0-255, 7x7 window at the working resolution) above which a pixel counts
 #: as textured for the depth acceptance.
@@ -144,6 +145,19 @@ def test_plane_sweep_result_does_not_depend_on_its_threads(exact_plane):
         assert torch.equal(one[0], three[0]) and torch.equal(one[1], three[1])
 
 
+def test_plane_sweep_threads_follow_torch_unless_given(half_clip):
+    """Without ``threads`` the sweep runs on torch's intra-op thread count of the calling thread when the clip
+    comes (the process's ``threads`` setting); an explicit count wins."""
+    with torch_threads(1):
+        follows = ClassicalBackbone()
+        follows.preprocess(*half_clip)
+    given = ClassicalBackbone(threads=3)
+    given.preprocess(*half_clip)
+    assert follows.diagnostics()["mvs_workers"] == 1 and given.diagnostics()["mvs_workers"] == 3
+    with pytest.raises(ValueError, match="threads must be >= 1, got 0"):
+        ClassicalBackbone(threads=0)
+
+
 def test_corrections_are_the_trainable_groups(half_clip):
     images, K = half_clip
     backbone = make_backbone("classical")
@@ -241,6 +255,7 @@ def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):
     assert out["frames"] == 8 and out["resolution"] == [480, 752] and out["working_resolution"] == [120, 188]
     assert 0 < out["median_s"] < 60 and out["status"] == "ok"
     assert set(out["stages_s"]) == {"tracks_s", "sfm_s", "mvs_s"}
+    assert out["threads"] == torch.get_num_threads() and "omp_wait_policy" in out
 
 
 def test_real_euroc_frames(euroc_fixture):

@@ -147,6 +147,9 @@ PARAMS: tuple[Param, ...] = (
     Param("backbone", "classical", "3D foundation model", choices=tuple(BACKBONES)),
     Param("device", "cpu", "torch device of the backbone (cpu, cuda, cuda:1...)"),
     Param("checkpoint", "", "local checkpoint path or Hugging Face id; empty: the backbone's default"),
+    Param("threads", 0, "torch intra-op threads of the process (backbone forward, cond/ttr steps) and the classical "
+          "backbone's plane-sweep threads, set once at start; 0: min(2, CPUs this process may use)",
+          range=(0, 1024)),
     Param("mode", "init", "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
           "(test-time refinement)", choices=MODES),
     Param("backbone_delay", 0.0, "s added to every clip's processing before the backbone, to emulate a slower model "

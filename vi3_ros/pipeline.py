@@ -58,6 +58,7 @@ from vi3_core.errors import CalibrationError
 from vi3_core.init import validate
 from vi3_core.init.options import InitOptions
 from vi3_core.online import ChainedClip, OnlineEstimator, OnlineOptions
+from vi3_core.threads import use_torch_threads
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
 from vi3_ros.imu_odom import ImuOdometry
@@ -240,7 +241,8 @@ class Pipeline:
     values: parameter values (``vi3_ros.params.resolve``); backbone: a ``vi3_core`` Backbone; calibration: the
     Calibration to use; synchronous: process each clip inside ``add_*`` (replay) instead of on the worker thread;
     on_report: called with each ClipReport (replay's summary). Thread-safe where the node needs it: outputs are
-    published from the worker thread, inputs arrive on the executor's thread."""
+    published from the worker thread, inputs arrive on the executor's thread. torch's thread count of the process is
+    set here from ``threads``, before the worker thread starts (``threads``: the count applied)."""
 
     def __init__(self, values: dict[str, Any], *, backbone: Any, calibration: Calibration, sink: OutputSink,
                  types: MessageTypes, synchronous: bool = False,
@@ -272,6 +274,7 @@ class Pipeline:
         self.outcomes: collections.Counter[str] = collections.Counter()
         self.message_drops: collections.Counter[str] = collections.Counter()  # drops before the buffer, by reason
         self.closing = False  # set by close(): outputs of a clip still running are not published
+        self.threads = use_torch_threads(values["threads"])
         self.worker = Worker(self._process, on_error=self._on_error, on_replaced=self._on_replaced,
                              synchronous=synchronous)
 

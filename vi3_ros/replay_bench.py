@@ -8,7 +8,8 @@ seconds of the replay (all threads; reading, decoding and writing included) / cl
 other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``) when the replays
 end, before their odometry is read back and scored (which holds every ``~/odom/imu`` message); it must not grow with
 the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry (``imu_odom_rate``),
-so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out).
+so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out). ``threads`` and ``omp_wait_policy``:
+the torch settings the replay ran with (parameter ``threads``).
 
 ``--realtime`` replays at the recorded rate into the node's worker thread, ``--backbone-delay S`` emulates a slower
 model: the clips the busy worker drops show in ``outcomes`` (``skipped:worker_busy``). With ground truth (the
@@ -32,6 +33,7 @@ from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
 from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.errors import DataError
+from vi3_core.threads import torch_thread_settings
 from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.ros1 import write_ros1_bag
 from vi3_ros.params import parse_assignment, resolve
@@ -101,5 +103,5 @@ def bench_replay(args: argparse.Namespace) -> dict:
             "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
             "realtime": args.realtime, "backbone_delay": values["backbone_delay"],
             "imu_odom_rate": values["imu_odom_rate"], "input": str(inp),
-            "peak_rss_mb": round(peak_rss_mb, 1),
+            "peak_rss_mb": round(peak_rss_mb, 1), **torch_thread_settings(),
             **(odometry[median] if len(odometry) == len(runs) else {})}

@@ -11,6 +11,7 @@ from vi3_core.backbones import make_backbone
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.threads import torch_thread_settings
 
 
 def bench_cache_dir() -> Path:
@@ -21,7 +22,8 @@ def bench_cache_dir() -> Path:
 def bench_ttr(args) -> dict:
     """TTR on the middle clip (n = 8, stride 2) of a generated 3 s sequence; ``args.repeats`` = steps (default
     40). ``ms_per_iter`` is the median step time (the first steps of a process carry one-time kernel warm-up);
-    ``total_s`` is the whole clip: backbone, initialisation and every step."""
+    ``total_s`` is the whole clip: backbone, initialisation and every step; ``threads`` and ``omp_wait_policy``
+    the torch settings it ran with (``vi3_core.threads.torch_thread_settings``)."""
     steps = args.repeats or 40
     seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
     clip = make_clip(seq, sample_clips(len(seq), n=8, stride=2, mode="paper")[1], with_depth=False)
@@ -31,4 +33,4 @@ def bench_ttr(args) -> dict:
     return {"ms_per_iter": result.timings.get("ttr_ms_per_iter", float("nan")), "steps": steps,
             "total_s": sum(v for k, v in result.timings.items() if k.endswith("_s")), "frames": clip.n,
             "resolution": [int(h), int(w)], "backbone": args.backbone, "init_status": result.init.status.value,
-            "mode": result.mode}
+            "mode": result.mode, **torch_thread_settings()}

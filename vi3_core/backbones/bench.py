@@ -12,13 +12,15 @@ from vi3_core.backbones import make_backbone
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.threads import torch_thread_settings
 
 
 def bench_backbone(args) -> dict:
     """Wall and process-CPU seconds per clip over ``args.repeats`` runs (default 5) after one warm-up run.
 
     Keys: median_s, min_s, cpu_median_s (process CPU time, less sensitive to other load on the machine),
-    frames, resolution (input [H, W]), working_resolution ([h, w] of depth), backbone, device, repeats, and for
+    frames, resolution (input [H, W]), working_resolution ([h, w] of depth), backbone, device, repeats, threads and
+    omp_wait_policy (``vi3_core.threads.torch_thread_settings``), and for
     backbones that report them (``Backbone.diagnostics``) stages_s, the per-stage seconds of the last run, and
     status, the clip's outcome.
     """
@@ -35,7 +37,7 @@ def bench_backbone(args) -> dict:
     out = {"median_s": float(np.median(wall)), "min_s": float(wall.min()), "cpu_median_s": float(np.median(cpu)),
            "frames": int(clip.n), "resolution": [int(s) for s in clip.images.shape[1:3]],
            "working_resolution": [int(s) for s in geometry.depth.shape[1:]], "backbone": args.backbone,
-           "device": str(args.device), "repeats": repeats}
+           "device": str(args.device), "repeats": repeats, **torch_thread_settings()}
     diagnostics = backbone.diagnostics()
     stages = {k: round(float(v), 4) for k, v in diagnostics.items() if k.endswith("_s")}
     if stages:

@@ -37,11 +37,25 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="replay benchmark: S seconds added to every clip (parameter backbone_delay)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="replay benchmark: any node parameter")
+    p.add_argument("--threads", type=_threads, default=0, metavar="N",
+                   help="torch intra-op threads and the classical backbone's plane-sweep threads, set once before "
+                   "the benchmarks (the node parameter threads); 0 (default): min(2, CPUs this process may use)")
     p.set_defaults(func=run)
+
+
+def _threads(text: str) -> int:
+    n = int(text)
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"--threads must be >= 0 (0: automatic), got {n}")
+    return n
 
 
 def run(args: argparse.Namespace) -> int:
     from vi3_core.eval.report import to_json  # strict JSON: a NaN timing or ratio prints as null
+    from vi3_core.threads import use_torch_threads
+
+    use_torch_threads(args.threads)
+    args.param = [f"threads={args.threads}", *args.param]  # the replay's pipeline sets it again from its parameters
 
     names = list(BENCHES) if args.name == "all" else [args.name]
     status = 0

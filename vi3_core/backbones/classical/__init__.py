@@ -23,10 +23,7 @@ The last clip's inputs, status and reason are also on the backbone (``last_input
 
 from __future__ import annotations
 
-import contextlib
-import os
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -41,6 +38,7 @@ from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, projec
 from vi3_core.backbones.classical.tracks import track_features
 from vi3_core.camera_torch import pixel_rays
 from vi3_core.errors import DataError, ModeNotSupported
+from vi3_core.threads import torch_threads
 
 
 class Corrections(torch.nn.Module):
@@ -62,7 +60,7 @@ class ClassicalInputs(BackboneInputs):
 
     base_R_wc [n,3,3], base_t_wc [n,3] camera-to-world (frame 0 = identity, normalised scale); base_depth,
     base_conf [n,h,w]; corrections: this clip's ``Corrections``; status/reason: see the module docstring;
-    diagnostics: counts, errors and stage timings (s).
+    diagnostics: counts, errors, stage timings (s) and the plane-sweep threads (mvs_workers).
     """
 
     base_R_wc: torch.Tensor
@@ -85,31 +83,14 @@ def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: 
     return float(np.percentile(z, 1)) / margin, float(np.percentile(z, 99)) * margin
 
 
-@contextlib.contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    """torch's intra-op thread count set to ``n`` for the block, then restored."""
-    old = torch.get_num_threads()
-    if old != n:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        if old != n:
-            torch.set_num_threads(old)
-
-
-def default_threads() -> int:
-    """Threads of the classical backbone: two where this process may use two or more CPUs, else one."""
-    return min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-
-
 class ClassicalBackbone(Backbone):
     """Classical multi-view geometry behind the backbone contract (see the module docstring).
 
     Options (keyword-only): ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120);
     ``max_features`` tracked corners per frame; ``n_depths``, ``n_sources``, ``best_k``, ``window``: plane-sweep
     settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly; ``threads``: Python
-    threads that sweep reference frames concurrently (default ``default_threads()``).
+    threads that sweep reference frames concurrently (None: torch's intra-op thread count when the clip comes, the
+    process's ``threads`` setting, see ``vi3_core.threads``).
 
     ``preprocess`` holds torch's intra-op pool at one thread: its OpenMP workers meet at a barrier after every
     operator, and when another process (or the node's executor) takes a core, the waiting worker spins; on the
@@ -134,10 +115,10 @@ class ClassicalBackbone(Backbone):
             raise ValueError(f"downscale must be >= 1, got {downscale}")
         self.downscale = downscale
         self.max_features = max_features
-        threads = default_threads() if threads is None else threads
-        if threads < 1:
+        if threads is not None and threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
-        self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window, workers=threads)
+        self.threads = threads
+        self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window)
         self.bundle_adjust = bundle_adjust
         #: The last clip's inputs (status, reason, diagnostics); its corrections are what ``param_groups`` returns.
         self.last_inputs: ClassicalInputs | None = None
@@ -154,7 +135,8 @@ class ClassicalBackbone(Backbone):
 
     def diagnostics(self) -> dict:
         """The last clip's status and reason, its SfM counts and errors (tracks, points, reproj_px_median, ...),
-        the scale divisor and the stage timings tracks_s, sfm_s, mvs_s (s); empty before any clip."""
+        the scale divisor, the stage timings tracks_s, sfm_s, mvs_s (s) and mvs_workers (plane-sweep threads);
+        empty before any clip."""
         if self.last_inputs is None:
             return {}
         return {"status": self.last_inputs.status, "reason": self.last_inputs.reason, **self.last_inputs.diagnostics}
@@ -167,10 +149,11 @@ class ClassicalBackbone(Backbone):
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
         """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``:
         images [n,3,h,w] and K [n,3,3] at the working resolution (``_hub.resize_crop``)."""
-        with _torch_threads(1):
-            return self._preprocess(images, K)
+        workers = self.threads or torch.get_num_threads()
+        with torch_threads(1):
+            return self._preprocess(images, K, workers)
 
-    def _preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
+    def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int) -> ClassicalInputs:
         images, K = check_clip(images, K)
         n, H, W = images.shape[:3]
         h, w = self.working_size(H, W)
@@ -195,7 +178,7 @@ class ClassicalBackbone(Backbone):
             rays = pixel_rays(K_t[0], h, w)  # [h*w,3], shared by the sweep and the scale normalisation
             with torch.no_grad():
                 depth, conf = plane_sweep(img.mean(1, keepdim=True), K_t[0], R, t, rng, rays=rays,
-                                          **self.mvs_options)
+                                          workers=workers, **self.mvs_options)
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
@@ -214,7 +197,7 @@ class ClassicalBackbone(Backbone):
             images=img.to(dt), K=K_t.to(dt), src_hw=(H, W),
             base_R_wc=R.to(dt), base_t_wc=t.to(dt), base_depth=depth.to(dt), base_conf=conf.to(dt),
             corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
-            diagnostics={**sfm.diagnostics, **timings})
+            diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers})
         self.last_inputs = inputs
         return inputs
 
