@@ -24,8 +24,8 @@ def bench_ttr(args) -> dict:
     40). ``ms_per_iter`` is the median step time (the first steps of a process carry one-time kernel warm-up);
     ``total_s`` is the whole clip (backbone, initialisation and every step; device-synchronised, ``DeviceClock``),
     ``backbone_s`` its base forward, ``init_ms`` its initialisation (``init``: "gt_free", or "ground_truth" with
-    random weights), ``ttr_s`` its steps, and
-    ``paper_total_s`` = init + 160 x ms_per_iter, the paper's per-clip "Total" (K = 160, base forward excluded).
+    random weights), ``ttr_s`` its steps, and ``paper_total_s`` = init + 160 x ms_per_iter, the paper's per-clip
+    "Total" (K = 160, base forward excluded).
     Also the backbone's description (``build_bench_backbone``) and on CUDA peak_gpu_mem_mb (weights included)."""
     steps = args.repeats or 40
     backbone, described = build_bench_backbone(args)  # first: a bad option fails before any data is made

@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="torch device for backbone/ttr/replay (cpu, cuda, cuda:1, mps)")
     p.add_argument("--dtype", default="fp32", choices=["fp32", "bf16", "fp16"],
                    help="backbone/ttr benchmarks: precision of a 3DFM's transformer trunk (autocast; weights and "
-                   "heads stay float32); torch also runs bf16/fp16 autocast on CPU, slowly on most CPUs")
+                   "heads stay float32); torch runs both bf16 and fp16 autocast on CPU too")
     p.add_argument("--random-init", action="store_true",
                    help="backbone/ttr benchmarks: a 3DFM's architecture with random weights (timing without a "
                    "checkpoint); not for classical, which has no weights")
