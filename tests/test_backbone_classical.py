@@ -251,8 +251,11 @@ def test_working_grid_is_the_shared_resize_crop(half_clip):
 
 def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):
     monkeypatch.setenv("VI3_CACHE", str(cache_dir))
-    out = bench_backbone(argparse.Namespace(backbone="classical", device="cpu", repeats=1))
+    out = bench_backbone(argparse.Namespace(backbone="classical", device="cpu", dtype="fp32", random_init=False,
+                                            resolution=None, repeats=1))
     assert out["frames"] == 8 and out["resolution"] == [480, 752] and out["working_resolution"] == [120, 188]
+    assert (out["backbone"], out["device"], out["dtype"], out["random_init"]) == ("classical", "cpu", "fp32", False)
+    assert "peak_gpu_mem_mb" not in out  # CUDA only
     assert 0 < out["median_s"] < 60 and out["status"] == "ok"
     assert set(out["stages_s"]) == {"tracks_s", "sfm_s", "mvs_s"}
     assert out["threads"] == torch.get_num_threads() and "omp_wait_policy" in out

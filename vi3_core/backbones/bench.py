@@ -3,12 +3,10 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from vi3_core.anchor.bench import bench_cache_dir
-from vi3_core.backbones import make_backbone
+from vi3_core.backbones.bench_device import DeviceClock, build_bench_backbone
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
@@ -16,28 +14,32 @@ from vi3_core.threads import torch_thread_settings
 
 
 def bench_backbone(args) -> dict:
-    """Wall and process-CPU seconds per clip over ``args.repeats`` runs (default 5) after one warm-up run.
+    """Wall and process-CPU seconds per clip over ``args.repeats`` runs (default 5) after one warm-up run, each
+    read after synchronising the device (``DeviceClock``).
 
     Keys: median_s, min_s, cpu_median_s (process CPU time, less sensitive to other load on the machine),
-    frames, resolution (input [H, W]), working_resolution ([h, w] of depth), backbone, device, repeats, threads and
-    omp_wait_policy (``vi3_core.threads.torch_thread_settings``), and for
-    backbones that report them (``Backbone.diagnostics``) stages_s, the per-stage seconds of the last run, and
-    status, the clip's outcome.
+    frames, resolution (input [H, W]), working_resolution ([h, w] of depth), repeats, the backbone's description
+    (backbone, device, dtype, random_init: ``build_bench_backbone``), on CUDA peak_gpu_mem_mb (weights included),
+    threads and omp_wait_policy (``vi3_core.threads.torch_thread_settings``),
+    and for backbones that report them (``Backbone.diagnostics``) stages_s, the per-stage seconds of the last run,
+    and status, the clip's outcome.
     """
     repeats = args.repeats or 5
+    backbone, described = build_bench_backbone(args)  # first: a bad option fails before any data is made
     seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
     clip = make_clip(seq, sample_clips(len(seq), n=8, stride=2, mode="paper")[1], with_depth=False)
-    backbone = make_backbone(args.backbone, device=args.device)
-    geometry = backbone.predict(clip.images, clip.K)  # warm-up: imports, allocator, thread pools
-    wall, cpu = np.empty(repeats), np.empty(repeats)
-    for k in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        geometry = backbone.predict(clip.images, clip.K)
-        wall[k], cpu[k] = time.perf_counter() - t0, time.process_time() - c0
+    clock = DeviceClock(backbone.device)
+    geometry = backbone.predict(clip.images, clip.K)  # warm-up: imports, allocator, thread pools, kernel choice
+    laps = []
+    for _ in range(repeats):
+        with clock.lap() as lap:
+            geometry = backbone.predict(clip.images, clip.K)
+        laps.append(lap)
+    wall, cpu = np.array([lap.wall_s for lap in laps]), np.array([lap.cpu_s for lap in laps])
     out = {"median_s": float(np.median(wall)), "min_s": float(wall.min()), "cpu_median_s": float(np.median(cpu)),
            "frames": int(clip.n), "resolution": [int(s) for s in clip.images.shape[1:3]],
-           "working_resolution": [int(s) for s in geometry.depth.shape[1:]], "backbone": args.backbone,
-           "device": str(args.device), "repeats": repeats, **torch_thread_settings()}
+           "working_resolution": [int(s) for s in geometry.depth.shape[1:]], **described, "repeats": repeats,
+           **clock.memory(), **torch_thread_settings()}
     diagnostics = backbone.diagnostics()
     stages = {k: round(float(v), 4) for k, v in diagnostics.items() if k.endswith("_s")}
     if stages:

@@ -28,7 +28,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print only the JSON object(s)")
     p.add_argument("--repeats", type=int, default=None, help="timed repetitions (default: per benchmark)")
     p.add_argument("--backbone", default="classical", help="backbone for backbone/ttr/replay benchmarks")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device for backbone/ttr/replay (cpu, cuda, cuda:1, mps)")
+    p.add_argument("--dtype", default="fp32", choices=["fp32", "bf16", "fp16"],
+                   help="backbone/ttr benchmarks: precision of a 3DFM's transformer trunk (autocast; weights and "
+                   "heads stay float32); torch runs both bf16 and fp16 autocast on CPU too")
+    p.add_argument("--random-init", action="store_true",
+                   help="backbone/ttr benchmarks: a 3DFM's architecture with random weights (timing without a "
+                   "checkpoint); not for classical, which has no weights")
+    p.add_argument("--resolution", type=int, default=None, metavar="N",
+                   help="backbone/ttr benchmarks: a 3DFM's input resolution option (width for vggt, side of the pixel "
+                   "budget for vggt_omega, pixels for pi3/pi3x, longest side for da3; docs/backbones.md); default "
+                   "the adapter's")
     p.add_argument("--input", default=None, help="input sequence for the replay benchmark")
     p.add_argument("--seconds", type=float, default=None, help="length of the generated replay input (default 20)")
     p.add_argument("--realtime", action="store_true", help="replay benchmark: at the recorded rate into the node's "
@@ -51,6 +61,9 @@ def _threads(text: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Each benchmark's JSON; a benchmark that cannot run here (missing package or checkpoint, no such device, an
+    option its backbone does not take) prints ``{"bench", "error"}`` and the exit status is 2."""
+    from vi3_core.errors import Vi3Error
     from vi3_core.eval.report import to_json  # strict JSON: a NaN timing or ratio prints as null
     from vi3_core.threads import use_torch_threads
 
@@ -64,5 +77,7 @@ def run(args: argparse.Namespace) -> int:
             result = {"bench": name, **_load(name)(args)}
         except (ImportError, AttributeError) as exc:
             result, status = {"bench": name, "error": f"not available: {exc}"}, 2
+        except (Vi3Error, ValueError) as exc:
+            result, status = {"bench": name, "error": str(exc)}, 2
         print(to_json(result))
     return status
