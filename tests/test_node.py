@@ -7,6 +7,7 @@ Where rclpy is not installed the module skips with the reason; everything the no
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -154,23 +155,33 @@ def _feed(asl, types, pub_img, pub_imu, *, seconds: float, speed: float = 1.0, c
         k += 1
 
 
+@contextlib.contextmanager
+def _feeder(image_type: str = "sensor_msgs/msg/Image", image_topic: str = "/cam0/image_raw"):
+    """A ROS context with a feeder node publishing images of ``image_type`` on ``image_topic`` and IMU on /imu0
+    (sensor-data QoS) and collecting /diagnostics: yields (types, image publisher, IMU publisher, diagnostics)."""
+    rclpy.init()
+    try:
+        types = MessageTypes.from_rclpy()
+        feeder = rclpy.create_node("vi3_test_feeder")
+        pub_img = feeder.create_publisher(types.get(image_type), image_topic, qos_profile_sensor_data)
+        pub_imu = feeder.create_publisher(types.get("sensor_msgs/msg/Imu"), "/imu0", qos_profile_sensor_data)
+        diag: list = []
+        feeder.create_subscription(types.get("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", diag.append,
+                                   RELIABLE)
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(feeder)
+        threading.Thread(target=executor.spin, daemon=True).start()
+        yield types, pub_img, pub_imu, diag
+        executor.shutdown()
+        feeder.destroy_node()
+    finally:
+        rclpy.shutdown()
+
+
 @pytest.fixture()
 def feeder_graph():
-    rclpy.init()
-    types = MessageTypes.from_rclpy()
-    feeder = rclpy.create_node("vi3_test_feeder")
-    pub_img = feeder.create_publisher(types.get("sensor_msgs/msg/Image"), "/cam0/image_raw", qos_profile_sensor_data)
-    pub_imu = feeder.create_publisher(types.get("sensor_msgs/msg/Imu"), "/imu0", qos_profile_sensor_data)
-    diag: list = []
-    feeder.create_subscription(types.get("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", diag.append,
-                               RELIABLE)
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(feeder)
-    threading.Thread(target=executor.spin, daemon=True).start()
-    yield types, pub_img, pub_imu, diag
-    executor.shutdown()
-    feeder.destroy_node()
-    rclpy.shutdown()
+    with _feeder() as graph:
+        yield graph
 
 
 @pytest.mark.parametrize("case", ["sigterm", "ignored_sigint", "sigint_twice"])
@@ -233,20 +244,8 @@ def test_malformed_images_are_counted_on_diagnostics_and_a_flood_keeps_memory_bo
 def test_compressed_images_are_learnt_from_the_graph_and_processed(cache_dir, tmp_path, node_process):
     """image_transport auto: the node finds sensor_msgs/CompressedImage on its image topic in the ROS graph,
     subscribes with that type and decodes the JPEG frames into results (the gate open: this checks decoding)."""
-    rclpy.init()
-    try:
-        types = MessageTypes.from_rclpy()
-        feeder = rclpy.create_node("vi3_test_feeder")
-        topic = "/cam0/image_raw/compressed"
-        pub_img = feeder.create_publisher(types.get("sensor_msgs/msg/CompressedImage"), topic,
-                                          qos_profile_sensor_data)
-        pub_imu = feeder.create_publisher(types.get("sensor_msgs/msg/Imu"), "/imu0", qos_profile_sensor_data)
-        diag: list = []
-        feeder.create_subscription(types.get("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", diag.append,
-                                   RELIABLE)
-        executor = MultiThreadedExecutor(num_threads=2)
-        executor.add_node(feeder)
-        threading.Thread(target=executor.spin, daemon=True).start()
+    topic = "/cam0/image_raw/compressed"
+    with _feeder("sensor_msgs/msg/CompressedImage", topic) as (types, pub_img, pub_imu, diag):
         asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
         calib = tmp_path / "cam0.yaml"
         write_euroc_sensor_yaml(EUROC_CAM0, calib)
@@ -260,10 +259,6 @@ def test_compressed_images_are_learnt_from_the_graph_and_processed(cache_dir, tm
         last = [s for m in diag for s in diagnostic_array_to_statuses(m) if s.name == "vi3: pipeline"][-1].values
         assert int(last.get("outcome_init", 0)) >= 1, last
         assert not any(k.startswith("drop_image") for k in last), last
-        executor.shutdown()
-        feeder.destroy_node()
-    finally:
-        rclpy.shutdown()
 
 
 def test_cond_with_a_backbone_that_cannot_condition_is_a_clear_start_error(tmp_path):
