@@ -87,6 +87,21 @@ def test_imu_rate_odometry_follows_the_chained_state_and_is_corrected_within_its
 
 
 
+def test_imu_rate_odometry_stops_when_its_position_sigma_exceeds_the_limit(seq4, tmp_path):
+    """imu_odom_max_sigma: no ~/odom/imu message with a horizontal position 1-sigma above it; the propagation stops
+    until the next chained clip, and /diagnostics says why."""
+    limit = 0.002
+    summary, odo = _replay(seq4, tmp_path / "capped.mcap", imu_odom_max_sigma=limit)
+    assert summary.outcomes == {"init": summary.clips} and len(odo.imu_ns) > 0
+    assert np.sqrt(odo.imu_pose_cov[:, 0, 0]).max() <= limit
+    odom_ns = [stamp_to_ns(m.header.stamp) for _, m in _messages(summary.output, "/vi3_node/odom")]
+    assert len(odo.imu_ns) < 0.9 * (odo.imu_ns[-1] - odom_ns[0]) / 5e6  # stopped between clips
+    states = {s.values.get("imu_odom", "") for _, m in _messages(summary.output, "/diagnostics")
+              for s in diagnostic_array_to_statuses(m) if s.name == "vi3: pipeline"}
+    assert any(st.startswith("stopped: position 1-sigma ") and f"> imu_odom_max_sigma {limit:g} m" in st
+               for st in states), states
+
+
 def test_realtime_replay_drops_what_a_busy_worker_cannot_take_and_the_odometry_chains_across(seq8, tmp_path):
     delay = 1.0
     summary, odo = _replay(seq8, tmp_path / "rt.mcap", realtime=True, backbone_delay=delay)

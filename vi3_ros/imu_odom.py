@@ -8,7 +8,8 @@ the IMU's rate or more), stamped with the sample's own stamp. Pose covariance ov
 ``odom_frame``: ``propagation_sigmas`` since the last chained frame (zero at it; the chained pose's own uncertainty in
 odom is not modelled); twist covariance in ``base_frame``: the velocity sigma and the gyro's white noise per sample.
 Nothing is published before the first chained clip, nor once the propagation stopped (an IMU gap longer than
-``max_imu_gap``, a non-finite sample, or ``online_max_bridge`` s without a chained clip): ``status`` says why.
+``max_imu_gap``, a non-finite sample, ``online_max_bridge`` s without a chained clip, or a horizontal position 1-sigma
+above ``imu_odom_max_sigma``): ``status`` says why.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ class ImuOdometry:
     def __init__(self, values: dict[str, Any], *, init_options: InitOptions, max_tau_s: float, types: MessageTypes,
                  publish: Callable[[str, Any, int], None]) -> None:
         self.period_ns = round(1e9 / values["imu_odom_rate"])
+        self.max_sigma = float(values["imu_odom_max_sigma"])
         self.frame, self.child = values["odom_frame"], values["base_frame"]
         self.options, self.max_tau_s = init_options, max_tau_s
         self.types, self._publish = types, publish
@@ -95,7 +97,7 @@ class ImuOdometry:
                 return
             states = prop.advance(ImuSamples(np.array([stamp_ns * 1e-9]), np.reshape(gyro, (1, 3)),
                                              np.reshape(accel, (1, 3))))
-            if not len(states) or not self._due(stamp_ns, last):
+            if not len(states) or self._too_uncertain(prop, states, state) or not self._due(stamp_ns, last):
                 return
         dt = (stamp_ns - last) * 1e-9 if last is not None else 1e-9 * self.period_ns
         pose_cov, twist_cov = covariances(states, state, self.options, dt)
@@ -104,6 +106,21 @@ class ImuOdometry:
                        child_frame_id=self.child, types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
         self._publish("odom_imu", msg, stamp_ns)
         self.published += 1
+
+    def _too_uncertain(self, prop: ImuPropagator, states: PropagatedStates, state: OdomState) -> bool:
+        """Whether the newest state's horizontal position 1-sigma exceeds ``imu_odom_max_sigma``; then the
+        propagation stops, saying so."""
+        if self.max_sigma <= 0:
+            return False
+        tau = float(states.tau[-1])
+        sigma = float(propagation_sigmas(tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma,
+                                         noise=self.options.noise_model,
+                                         gravity_norm=self.options.gravity_norm).position_h)
+        if sigma <= self.max_sigma:
+            return False
+        prop.stopped = (f"position 1-sigma {sigma:.2f} m > imu_odom_max_sigma {self.max_sigma:g} m, {tau:.1f} s after "
+                        "the last chained frame")
+        return True
 
     def _due(self, stamp_ns: int, last_ns: int | None) -> bool:
         """Whether the sample at ``stamp_ns`` is published: the first sample within half a sample interval of the

@@ -110,6 +110,9 @@ PARAMS: tuple[Param, ...] = (
           "a clip that is not chained keeps clip_frame)"),
     Param("imu_odom_rate", 200.0, "Hz; ~/odom/imu: the last chained state propagated with every IMU sample, published "
           "at most this often (every sample at the IMU's rate or above); 0: off (online only)", range=(0.0, 10000.0)),
+    Param("imu_odom_max_sigma", 1.0, "m; ~/odom/imu stops, until the next chained clip, once its horizontal position "
+          "1-sigma since the last chained frame exceeds this (a dead-reckoned pose a flight stack should not use); 0: "
+          "no limit", range=(0.0, 1e6)),
     Param("path_max_poses", 5000, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
     _option("online_window", OnlineOptions, "window_s", "s; clips starting within this of the newest are fitted "
             "jointly (gravity and biases shared, velocities tied through the IMU, one scale per clip); older ones are "
