@@ -81,8 +81,9 @@ class Grid:
 def merged_grid(imu: ImuSamples, stamps: np.ndarray) -> Grid:
     """Frame stamps merged with the IMU stamps strictly between them, and the IMU interpolated on that grid."""
     stamps = np.asarray(stamps, dtype=np.float64)
-    inside = (imu.t > stamps[0]) & (imu.t < stamps[-1]) & ~np.isin(imu.t, stamps)
-    t = np.sort(np.concatenate([stamps, imu.t[inside]]), kind="stable")
+    inside = imu.t[(imu.t > stamps[0]) & (imu.t < stamps[-1])]
+    inside = inside[stamps[np.searchsorted(stamps, inside)] != inside]  # not a stamp itself (stamps are sorted)
+    t = np.sort(np.concatenate([stamps, inside]), kind="stable")
     gyro = np.stack([np.interp(t, imu.t, imu.gyro[:, a]) for a in range(3)], -1)
     accel = np.stack([np.interp(t, imu.t, imu.accel[:, a]) for a in range(3)], -1)
     return Grid(t, gyro, accel, np.searchsorted(t, stamps))

@@ -51,7 +51,10 @@ def log(R: np.ndarray) -> np.ndarray:
     scipy's quaternion-based conversion.
     """
     R = np.asarray(R, dtype=np.float64)
-    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    vee = np.empty(R.shape[:-1])
+    np.subtract(R[..., 2, 1], R[..., 1, 2], out=vee[..., 0])
+    np.subtract(R[..., 0, 2], R[..., 2, 0], out=vee[..., 1])
+    np.subtract(R[..., 1, 0], R[..., 0, 1], out=vee[..., 2])
     # the trace, clip and norm spelled out: numpy's wrappers cost more than the arithmetic on small batches
     cos = np.minimum(np.maximum((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) * 0.5, -1.0), 1.0)
     sin = 0.5 * np.sqrt((vee * vee).sum(-1))

@@ -350,7 +350,7 @@ class MetricFit:
     def _step(self, s: FitState, dx: np.ndarray, B: np.ndarray) -> FitState:
         g = s.g - self.G * B @ dx[0:2]
         per = dx[N_SHARED:].reshape(self.K, N_CLIP)
-        return FitState(self.G * g / np.linalg.norm(g), s.ba - dx[2:5], s.bg - dx[5:8], s.lam - per[:, 0],
+        return FitState(self.G * g / math.hypot(*g), s.ba - dx[2:5], s.bg - dx[5:8], s.lam - per[:, 0],
                         s.v - per[:, 1:4], s.c - per[:, 4:7])
 
     # ---- solution -----------------------------------------------------------------------------------------------
@@ -431,7 +431,7 @@ class MetricFit:
         P_A, P_y = A[3 * n:], y[3 * n:]
         H0, g0 = P_A.T @ P_A, P_A.T @ P_y
         floor = 1e-12 * max(float((blk.a**2).sum()) / n, 1e-12)  # model units: relative to the clip's extent
-        theta = max(float((r_m**2).mean()), floor)
+        theta = max(float((r_m**2).sum()) / r_m.size, floor)
         for _ in range(iterations):
             w = 1.0 / (theta + D)
             w2 = w * w
@@ -597,7 +597,7 @@ def _t975(dof: float) -> float:
 
 def _tangent_basis(u: np.ndarray) -> np.ndarray:
     """Two unit vectors [3,2] orthogonal to the unit vector u and to each other."""
-    ux, uy, uz = (float(c) for c in u)  # plain floats: numpy's per-call cost dwarfs the arithmetic here
+    ux, uy, uz = u.tolist()  # plain floats: numpy's per-call cost dwarfs the arithmetic here
     size = [abs(ux), abs(uy), abs(uz)]
     axis = size.index(min(size))  # the axis least aligned with u
     ex, ey, ez = (1.0 if a == axis else 0.0 for a in range(3))
