@@ -33,12 +33,14 @@ from vi3_core.types import ImuSamples, ImuTrajectory
 
 def cumulative_rotations(dR: np.ndarray) -> np.ndarray:
     """[K,3,3] increments -> [K+1,3,3] prefix products R_0 = I, R_k = dR_0 @ ... @ dR_{k-1}."""
-    P = dR.copy()
+    out = np.empty((len(dR) + 1, 3, 3))
+    out[0], out[1:] = np.eye(3), dR
+    P = out[1:]
     shift = 1
     while shift < len(P):
         P[shift:] = P[:-shift] @ P[shift:]  # right side is evaluated first: a Hillis-Steele scan step
         shift *= 2
-    return np.concatenate([np.eye(3)[None], P], axis=0)
+    return out
 
 
 @dataclass(frozen=True)

@@ -47,9 +47,10 @@ def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg:
     """
     grid = grid or merged_grid(imu, stamps)
     pairs = _FramePairs.of(stamps, R_vis)
+    weight = pairs.dT[:, None] / (pairs.dT**2).sum()
     for _ in range(iters):
         r = pairs.residual(frame_rotations(grid, bg))
-        bg = bg - (pairs.dT[:, None] * r).sum(0) / (pairs.dT**2).sum()
+        bg = bg - (weight * r).sum(0)
     return bg
 
 
