@@ -79,8 +79,8 @@ def test_imu_rate_odometry_follows_the_chained_state_and_is_corrected_within_its
         assert 0.005 < dt <= 0.011
         assert np.linalg.norm(odo.imu_T[k, :3, 3] - T[:3, 3] - T[:3, :3] @ v_B * dt) < 1e-3
         assert var[k] < 1e-4 < var[k - 1]
-    jumps, sigmas = correction_jumps(odo)
-    assert len(jumps) == len(odom) - 1 and np.all(sigmas > 0)
+    jumps, sigmas, resumes = correction_jumps(odo)
+    assert len(jumps) == len(odom) - 1 and resumes == 0 and np.all(sigmas > 0)
     assert np.all(jumps <= 3.0 * sigmas), (jumps, sigmas)  # a correction stays within the propagated uncertainty
     between = np.split(var, np.flatnonzero(np.diff(var) < 0) + 1)
     assert all(np.all(np.diff(b) > 0) for b in between)  # uncertainty grows with the time since the last clip
@@ -100,6 +100,8 @@ def test_imu_rate_odometry_stops_when_its_position_sigma_exceeds_the_limit(seq4,
               for s in diagnostic_array_to_statuses(m) if s.name == "vi3: pipeline"}
     assert any(st.startswith("stopped: position 1-sigma ") and f"> imu_odom_max_sigma {limit:g} m" in st
                for st in states), states
+    jumps, _, resumes = correction_jumps(odo)  # restarts after a stop are resumes, not jumps of a running stream
+    assert resumes >= 1 and len(jumps) + resumes == len(odom_ns) - 1
 
 
 def test_realtime_replay_drops_what_a_busy_worker_cannot_take_and_the_odometry_chains_across(seq8, tmp_path):

@@ -77,15 +77,21 @@ def read_odometry(output: str | Path) -> ReplayOdometry:
         imu_pose_cov=np.array([r[4] for r in imu]).reshape(-1, 6, 6))
 
 
-def correction_jumps(odo: ReplayOdometry) -> tuple[np.ndarray, np.ndarray]:
-    """At each correction of ``~/odom/imu`` (where the propagation restarts from a newly chained clip: the pose
-    covariance shrinks), the jump (m): the new position minus the previous message's position carried forward with
-    its velocity; and that previous message's position 1-sigma (m, 3D). Both [c]."""
+def correction_jumps(odo: ReplayOdometry) -> tuple[np.ndarray, np.ndarray, int]:
+    """At each correction of a running ``~/odom/imu`` (where the propagation restarts from a newly chained clip: the
+    pose covariance shrinks, and the previous message is at most two message intervals older), the jump (m): the new
+    position minus the previous message's position carried forward with its velocity; and that previous message's
+    position 1-sigma (m, 3D). Both [c]; and the count of resumes, restarts after the stream had stopped (a longer
+    silence: ``imu_odom_max_sigma``, an IMU gap), which are no jump of a running stream."""
     var = np.trace(odo.imu_pose_cov[:, :3, :3], axis1=1, axis2=2)
     k = np.flatnonzero(np.diff(var) < 0)  # message k + 1 starts from a new state
+    gaps = np.diff(odo.imu_ns)
+    running = gaps[k] <= 2 * np.median(gaps) if len(gaps) else np.zeros(0, bool)
+    resumes = int((~running).sum())
+    k = k[running]
     dt = (odo.imu_ns[k + 1] - odo.imu_ns[k]) * 1e-9
     predicted = odo.imu_T[k, :3, 3] + odo.imu_v[k] * dt[:, None]
-    return np.linalg.norm(odo.imu_T[k + 1, :3, 3] - predicted, axis=1), np.sqrt(var[k])
+    return np.linalg.norm(odo.imu_T[k + 1, :3, 3] - predicted, axis=1), np.sqrt(var[k]), resumes
 
 
 def gt_path_length(gt: GroundTruthTrack, t0: float, t1: float) -> float:
@@ -111,9 +117,9 @@ def odometry_report(odo: ReplayOdometry, gt: GroundTruthTrack | None, *, time_of
         end_error = sum(seg.drift_pct * seg.distance_m / 100.0 for seg in m.segments if seg.distance_m > 0)
         odom.update(ate_m=round(m.ate_m, 4), drift_pct=round(100.0 * end_error / flown, 3) if flown > 0 else None,
                     gravity_err_deg=round(m.gravity_err_deg, 3), distance_m=round(flown, 2), scored_frames=m.frames)
-    jumps, sigmas = correction_jumps(odo)
+    jumps, sigmas, resumes = correction_jumps(odo)
     rate = 1e9 / float(np.median(np.diff(odo.imu_ns))) if len(odo.imu_ns) >= 2 else None
     imu = {"messages": len(odo.imu_ns), "rate_hz": None if rate is None else round(rate, 1),
-           "corrections": len(jumps), "max_jump_m": round(float(jumps.max()), 4) if len(jumps) else None,
+           "corrections": len(jumps), "resumes": resumes, "max_jump_m": round(float(jumps.max()), 4) if len(jumps) else None,
            "max_jump_sigma": round(float((jumps / sigmas).max()), 2) if len(jumps) else None}
     return {"odom": odom, "imu_odom": imu}
