@@ -120,6 +120,7 @@ def odometry_report(odo: ReplayOdometry, gt: GroundTruthTrack | None, *, time_of
     jumps, sigmas, resumes = correction_jumps(odo)
     rate = 1e9 / float(np.median(np.diff(odo.imu_ns))) if len(odo.imu_ns) >= 2 else None
     imu = {"messages": len(odo.imu_ns), "rate_hz": None if rate is None else round(rate, 1),
-           "corrections": len(jumps), "resumes": resumes, "max_jump_m": round(float(jumps.max()), 4) if len(jumps) else None,
+           "corrections": len(jumps), "resumes": resumes,
+           "max_jump_m": round(float(jumps.max()), 4) if len(jumps) else None,
            "max_jump_sigma": round(float((jumps / sigmas).max()), 2) if len(jumps) else None}
     return {"odom": odom, "imu_odom": imu}
