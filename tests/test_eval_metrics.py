@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -187,6 +189,29 @@ def _line(n: int, x0: float = 0.0) -> np.ndarray:
     T = np.repeat(np.eye(4)[None], n, 0)
     T[:, 0, 3] = x0 + np.arange(n, dtype=np.float64)
     return T
+
+
+def test_drift_counts_the_distance_flown_between_poses():
+    """With the GT track, a stretch without poses (clips not claimed, or dropped) counts the metres actually flown,
+    not the straight line between the poses around it."""
+    from vi3_core.dataset.sequence import GroundTruthTrack
+    from vi3_core.eval.chained import chained_metrics, gt_path_length
+
+    t = np.linspace(0.0, 2.0, 201)
+    T = np.repeat(np.eye(4)[None], len(t), 0)
+    T[:, 0, 3], T[:, 1, 3] = t, 0.5 * np.sin(np.pi * t)  # out 0.5 m sideways and back while moving 2 m along x
+    track = GroundTruthTrack(t=t, T_WB=T)
+    stamps = np.array([0.0, 0.1, 1.9, 2.0])  # poses only at both ends
+    T_WB = track.at(stamps).T_WB
+    T_OB = T_WB.copy()
+    T_OB[-1, 0, 3] += 0.1  # 10 cm off at the end
+    flown = gt_path_length(track, 0.0, 2.0)
+    assert 2.9 < flown < 2.95  # the arc: the integral of sqrt(1 + (pi/2 cos(pi t))^2) over [0, 2] is 2.93
+    frames_only = chained_metrics(T_OB, T_WB, stamps=stamps)
+    m = chained_metrics(T_OB, T_WB, stamps=stamps, path_length=functools.partial(gt_path_length, track))
+    assert frames_only.distance_m == pytest.approx(np.linalg.norm(np.diff(T_WB[:, :3, 3], axis=0), axis=1).sum())
+    assert m.distance_m == pytest.approx(flown) and m.distance_m > frames_only.distance_m + 0.3
+    assert m.drift_pct == pytest.approx(100 * 0.1 / flown, rel=0.05)
 
 
 def test_chained_trajectory_is_scored_per_segment():

@@ -13,6 +13,7 @@ chains contiguous clips, where the two agree).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from msg_adapters.diagnostics import diagnostic_array_to_statuses
 from msg_adapters.poses import odometry_to_numpy, poses_to_T
 from msg_adapters.stamps import stamp_to_ns
 from vi3_core.dataset.sequence import GroundTruthTrack
-from vi3_core.eval.chained import chained_metrics
+from vi3_core.eval.chained import chained_metrics, gt_path_length
 from vi3_core.types import window_bounds
 from vi3_ros.pipeline import OUTPUTS, STATUS_NAME
 from vi3_ros.replay import topic_name
@@ -94,13 +95,6 @@ def correction_jumps(odo: ReplayOdometry) -> tuple[np.ndarray, np.ndarray, int]:
     return np.linalg.norm(odo.imu_T[k + 1, :3, 3] - predicted, axis=1), np.sqrt(var[k]), resumes
 
 
-def gt_path_length(gt: GroundTruthTrack, t0: float, t1: float) -> float:
-    """Metres the ground truth flies between t0 and t1 s (every sample of the track in between)."""
-    inside = gt.t[(gt.t > t0) & (gt.t < t1)]
-    p = gt.at(np.concatenate([[t0], inside, [t1]])).T_WB[:, :3, 3]
-    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
-
-
 def odometry_report(odo: ReplayOdometry, gt: GroundTruthTrack | None, *, time_offset: float = 0.0) -> dict[str, Any]:
     """JSON-ready: ``odom`` (the chained trajectory's frames, segments, window resets and, with ``gt``, its chained
     metrics), ``imu_odom`` (messages, median rate in Hz, corrections, the largest jump and jump / sigma).
@@ -112,11 +106,10 @@ def odometry_report(odo: ReplayOdometry, gt: GroundTruthTrack | None, *, time_of
         i0, i1 = window_bounds(t, gt.t[0], gt.t[-1], 0)
         inside = slice(i0, i1)
         m = chained_metrics(odo.path_T[inside], gt.at(t[inside]).T_WB, stamps=t[inside],
-                            segment_starts=odo.segment_starts)
-        flown = sum(gt_path_length(gt, seg.t0, seg.t1) for seg in m.segments)
-        end_error = sum(seg.drift_pct * seg.distance_m / 100.0 for seg in m.segments if seg.distance_m > 0)
-        odom.update(ate_m=round(m.ate_m, 4), drift_pct=round(100.0 * end_error / flown, 3) if flown > 0 else None,
-                    gravity_err_deg=round(m.gravity_err_deg, 3), distance_m=round(flown, 2), scored_frames=m.frames)
+                            segment_starts=odo.segment_starts, path_length=functools.partial(gt_path_length, gt))
+        odom.update(ate_m=round(m.ate_m, 4), drift_pct=round(m.drift_pct, 3) if m.distance_m > 0 else None,
+                    gravity_err_deg=round(m.gravity_err_deg, 3), distance_m=round(m.distance_m, 2),
+                    scored_frames=m.frames)
     jumps, sigmas, resumes = correction_jumps(odo)
     rate = 1e9 / float(np.median(np.diff(odo.imu_ns))) if len(odo.imu_ns) >= 2 else None
     imu = {"messages": len(odo.imu_ns), "rate_hz": None if rate is None else round(rate, 1),

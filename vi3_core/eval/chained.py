@@ -4,10 +4,10 @@ Gravity fixes roll and pitch of odom, so only the yaw and the position of the fi
 scale). The trajectory is scored per **segment**: the estimator starts a new one (``Trajectory.resets``, the first
 stamp of each) wherever it placed a clip without a trustworthy IMU bridge from the one before, so positions across
 that boundary are not comparable; each segment is aligned on its own first pose. Per segment, ATE is the RMS
-position error after that alignment and drift the final position error per metre travelled (its ground-truth path
-length); overall, ATE is the RMS over every frame of the per-segment errors and drift the segments' final errors
-summed per metre of their summed paths. The gravity error is the mean angle between the up axis of odom and the
-true one, seen from the body.
+position error after that alignment and drift the final position error per metre travelled (the ground truth's
+path over the segment's time span, stretches without poses included: ``gt_path_length``); overall, ATE is the RMS
+over every frame of the per-segment errors and drift the segments' final errors summed per metre of their summed
+paths. The gravity error is the mean angle between the up axis of odom and the true one, seen from the body.
 
 The per-clip scale errors |Scale (Traj.) - 1| of the chained run and of the same clips' own GT-free initialisation
 are compared by their medians after the first ``SCALE_SKIP_CLIPS`` clips, while the window fills
@@ -17,6 +17,7 @@ are compared by their medians after the first ``SCALE_SKIP_CLIPS`` clips, while 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -29,8 +30,9 @@ SCALE_SKIP_CLIPS = 3
 
 @dataclass(frozen=True)
 class SegmentMetrics:
-    """One segment of the chained trajectory: t0, t1: its first and last stamps, s; frames: poses; distance_m: GT
-    path length, m; ate_m: m; drift_pct: % of distance_m (NaN when the segment does not move)."""
+    """One segment of the chained trajectory: t0, t1: its first and last stamps, s; frames: poses; distance_m: the
+    metres the ground truth flew from t0 to t1 (``path_length``; between its compared frames when not given); ate_m:
+    m; drift_pct: the final error in % of distance_m (NaN when the segment does not move)."""
 
     t0: float
     t1: float
@@ -89,22 +91,36 @@ def segment_bounds(stamps: np.ndarray, starts) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def _segment(stamps: np.ndarray, T_OB: np.ndarray, T_WB: np.ndarray) -> tuple[SegmentMetrics, np.ndarray]:
+def gt_path_length(gt, t0: float, t1: float) -> float:
+    """Metres ``gt`` (a ``vi3_core.dataset.sequence.GroundTruthTrack``) flies between t0 and t1 s, over every sample
+    of the track in between: a chained trajectory's stretches without poses (clips not claimed or dropped) count
+    with the distance actually flown, not as a straight line."""
+    inside = gt.t[(gt.t > t0) & (gt.t < t1)]
+    p = gt.at(np.concatenate([[t0], inside, [t1]])).T_WB[:, :3, 3]
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
+def _segment(stamps: np.ndarray, T_OB: np.ndarray, T_WB: np.ndarray,
+             path_length: Callable[[float, float], float] | None) -> tuple[SegmentMetrics, np.ndarray]:
     err = np.linalg.norm(align_yaw_first(T_OB, T_WB) - T_WB[:, :3, 3], axis=1)
-    distance = float(np.linalg.norm(np.diff(T_WB[:, :3, 3], axis=0), axis=1).sum())
+    distance = (path_length(float(stamps[0]), float(stamps[-1])) if path_length is not None
+                else float(np.linalg.norm(np.diff(T_WB[:, :3, 3], axis=0), axis=1).sum()))
     return SegmentMetrics(t0=float(stamps[0]), t1=float(stamps[-1]), frames=len(stamps), distance_m=distance,
                           ate_m=float(np.sqrt((err**2).mean())),
                           drift_pct=100.0 * float(err[-1]) / distance if distance > 0 else float("nan")), err
 
 
-def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, stamps: np.ndarray, segment_starts=()) -> ChainedMetrics:
+def chained_metrics(T_OB: np.ndarray, T_WB: np.ndarray, *, stamps: np.ndarray, segment_starts=(),
+                    path_length: Callable[[float, float], float] | None = None) -> ChainedMetrics:
     """T_OB, T_WB: [N,4,4] estimated (odom) and GT (world, z up) body poses at ``stamps`` [N] s, N >= 2;
-    segment_starts: stamps at which a new segment begins (``Trajectory.resets``)."""
+    segment_starts: stamps at which a new segment begins (``Trajectory.resets``); path_length(t0, t1): metres the
+    ground truth flew between two stamps (``functools.partial(gt_path_length, track)``), the drift's denominator;
+    None: the GT path through the compared frames only, which shortens stretches without poses."""
     stamps = np.asarray(stamps, dtype=np.float64)
     if not (len(T_OB) == len(T_WB) == len(stamps)) or len(T_OB) < 2:
         raise DataError(f"chained metrics need >= 2 matching poses and stamps, got {len(T_OB)} estimated, "
                         f"{len(T_WB)} GT and {len(stamps)} stamps")
-    parts = [_segment(stamps[s], T_OB[s], T_WB[s]) for s in segment_bounds(stamps, segment_starts)]
+    parts = [_segment(stamps[s], T_OB[s], T_WB[s], path_length) for s in segment_bounds(stamps, segment_starts)]
     segments = tuple(seg for seg, _ in parts)
     err = np.concatenate([e for _, e in parts])
     distance = sum(seg.distance_m for seg in segments)

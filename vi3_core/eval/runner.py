@@ -11,6 +11,7 @@ produced them and no depth value is invented.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -22,7 +23,7 @@ from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.sequence import Sequence, make_clip, sample_clips
 from vi3_core.errors import DataError, Vi3Error
 from vi3_core.eval import metrics
-from vi3_core.eval.chained import ChainedMetrics, chained_metrics
+from vi3_core.eval.chained import ChainedMetrics, chained_metrics, gt_path_length
 from vi3_core.eval.claims import scale_error
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.init import InitOptions, oracle_init
@@ -281,5 +282,6 @@ def _finish(seq: Sequence, est: OnlineEstimator, run: OnlineRun, evals: list[Cli
         run.reason = (f"no trajectory: {len(traj.stamps)} chained poses ({sum(e.ok for e in evals)} of "
                       f"{len(evals)} clips ok)")
     run.metrics = None if run.reason else chained_metrics(run.T_OB, run.T_WB, stamps=run.stamps,
-                                                          segment_starts=run.segment_starts)
+                                                          segment_starts=run.segment_starts,
+                                                          path_length=functools.partial(gt_path_length, seq.gt))
     return run
