@@ -24,17 +24,20 @@ from msg_adapters.poses import odometry
 from msg_adapters.types import MessageTypes
 from vi3_core.init.options import InitOptions
 from vi3_core.online import OdomState
-from vi3_core.online.propagator import ImuPropagator, PropagatedStates, propagation_sigmas
+from vi3_core.online.propagator import ImuPropagator, PropagatedStates, PropagationSigmas, propagation_sigmas
 from vi3_core.types import ImuSamples
 
 
-def covariances(states: PropagatedStates, state: OdomState, options: InitOptions,
-                sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """(pose covariance [m,6,6] in odom, twist covariance [m,6,6] in the body frame) of propagated ``states``, from
-    ``state``'s sigmas and ``options``' IMU noise model; ``sample_dt`` s: the IMU sample interval (gyro noise)."""
-    s = propagation_sigmas(states.tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
-                           gravity_norm=options.gravity_norm)
-    m = len(states)
+def sigmas(states: PropagatedStates, state: OdomState, options: InitOptions) -> PropagationSigmas:
+    """The 1-sigmas of propagated ``states`` [m], from ``state``'s sigmas and ``options``' IMU noise model."""
+    return propagation_sigmas(states.tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
+                              gravity_norm=options.gravity_norm)
+
+
+def covariances(s: PropagationSigmas, options: InitOptions, sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(pose covariance [m,6,6] in odom, twist covariance [m,6,6] in the body frame) of states with the 1-sigmas
+    ``s`` (``sigmas``); ``sample_dt`` s: the IMU sample interval (gyro noise of ``options``)."""
+    m = len(s.position_h)
     pose = np.zeros((m, 6, 6))
     idx = np.arange(6)
     pose[:, idx, idx] = np.stack([s.position_h, s.position_h, s.position_v, s.tilt, s.tilt, s.yaw], -1) ** 2
@@ -97,25 +100,25 @@ class ImuOdometry:
                 return
             states = prop.advance(ImuSamples(np.array([stamp_ns * 1e-9]), np.reshape(gyro, (1, 3)),
                                              np.reshape(accel, (1, 3))))
-            if not len(states) or self._too_uncertain(prop, states, state) or not self._due(stamp_ns, last):
+            if not len(states):
+                return
+            sig = sigmas(states, state, self.options)
+            if self._too_uncertain(prop, sig, float(states.tau[-1])) or not self._due(stamp_ns, last):
                 return
         dt = (stamp_ns - last) * 1e-9 if last is not None else 1e-9 * self.period_ns
-        pose_cov, twist_cov = covariances(states, state, self.options, dt)
+        pose_cov, twist_cov = covariances(sig, self.options, dt)
         T = states.T_OB[0]
         msg = odometry(T, T[:3, :3].T @ states.v_O[0], states.omega[0], stamp_ns=stamp_ns, frame_id=self.frame,
                        child_frame_id=self.child, types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
         self._publish("odom_imu", msg, stamp_ns)
         self.published += 1
 
-    def _too_uncertain(self, prop: ImuPropagator, states: PropagatedStates, state: OdomState) -> bool:
-        """Whether the newest state's horizontal position 1-sigma exceeds ``imu_odom_max_sigma``; then the
-        propagation stops, saying so."""
+    def _too_uncertain(self, prop: ImuPropagator, sig: PropagationSigmas, tau: float) -> bool:
+        """Whether the newest state's horizontal position 1-sigma (``sig``, ``tau`` s after the chained frame) exceeds
+        ``imu_odom_max_sigma``; then the propagation stops, saying so."""
         if self.max_sigma <= 0:
             return False
-        tau = float(states.tau[-1])
-        sigma = float(propagation_sigmas(tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma,
-                                         noise=self.options.noise_model,
-                                         gravity_norm=self.options.gravity_norm).position_h)
+        sigma = float(sig.position_h[-1])
         if sigma <= self.max_sigma:
             return False
         prop.stopped = (f"position 1-sigma {sigma:.2f} m > imu_odom_max_sigma {self.max_sigma:g} m, {tau:.1f} s after "
