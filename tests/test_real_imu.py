@@ -35,20 +35,27 @@ def test_no_folder_images_but_camera_stamps_on_the_imu_clock(v102):
         v102.image(0)
 
 
+def _chained(seq, noise: PoseNoise, *, seed: int = 0, max_clips: int | None = None):
+    """The sliding clips of ``seq`` through the pose instrument and the online estimator, as a GT-free run does:
+    yields (clip, the instrument's base geometry, its true metres per model unit, the window's InitResult)."""
+    instrument = GroundTruthPoses(noise=noise, seed=seed)
+    est = OnlineEstimator()
+    for idx in sample_clips(len(seq), n=8, stride=2, mode="sliding")[:max_clips]:
+        clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=False)
+        instrument.bind(clip)
+        base = instrument.predict(clip.images, clip.K)
+        init = est.initialise(clip, base)
+        est.update(clip, AnchorResult(geometry=base.scaled(init.scale) if init.ok else base, base=base, init=init,
+                                      mode="init" if init.ok else "none", alpha=init.scale, target=init.target))
+        yield clip, base, instrument.last_scale, init
+
+
 def test_real_imu_claims_are_supported_by_their_sigma(v102):
     """Chained and independent: no claimed clip more than 10 % off or beyond 3 sigma; the window claims most clips
     once the drone flies, the clips on their own few (3 mm of noise hides the scale of one 0.7 s clip)."""
-    instrument = GroundTruthPoses(noise=PoseNoise(pos_m=0.003, rot_deg=0.1))
-    est = OnlineEstimator()
     chained, own = [], []
-    for idx in sample_clips(len(v102), n=8, stride=2, mode="sliding"):
-        clip = make_clip(v102, idx, history_s=est.options.max_bridge_s, with_images=False)
-        instrument.bind(clip)
-        base = instrument.predict(clip.images, clip.K)
-        truth = instrument.last_scale  # metres per model unit of this clip
-        free, init = initialise_clip(clip, base), est.initialise(clip, base)
-        est.update(clip, AnchorResult(geometry=base.scaled(init.scale) if init.ok else base, base=base, init=init,
-                                      mode="init" if init.ok else "none", alpha=init.scale, target=init.target))
+    for clip, base, truth, init in _chained(v102, PoseNoise(pos_m=0.003, rot_deg=0.1)):
+        free = initialise_clip(clip, base)
         for results, r in ((own, free), (chained, init)):
             results.append((r.ok, abs(r.scale / truth - 1.0), r.scale_sigma / r.scale))
     for name, results in (("chained", chained), ("independent", own)):
@@ -84,20 +91,10 @@ def test_the_window_does_not_amplify_round_off(v102):
     rng = np.random.default_rng(5)
     accel = v102.imu.accel * (1 + 1e-13 * rng.standard_normal(v102.imu.accel.shape))
     bumped = dataclasses.replace(v102.imu, accel=accel)
-    runs = []
-    for imu in (v102.imu, bumped):
-        seq = dataclasses.replace(v102, imu=imu)
-        instrument = GroundTruthPoses(noise=PoseNoise(pos_m=0.001, rot_deg=0.05), seed=1)
-        est, out = OnlineEstimator(), []
-        for idx in sample_clips(len(seq), n=8, stride=2, mode="sliding")[:20]:
-            clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=False)
-            instrument.bind(clip)
-            base = instrument.predict(clip.images, clip.K)
-            init = est.initialise(clip, base)
-            est.update(clip, AnchorResult(geometry=base.scaled(init.scale) if init.ok else base, base=base, init=init,
-                                          mode="init" if init.ok else "none", alpha=init.scale, target=init.target))
-            out.append((init.status, init.scale))
-        runs.append(out)
+    runs = [[(init.status, init.scale) for *_, init in _chained(dataclasses.replace(v102, imu=imu),
+                                                                  PoseNoise(pos_m=0.001, rot_deg=0.05), seed=1,
+                                                                  max_clips=20)]
+            for imu in (v102.imu, bumped)]
     assert [s for s, _ in runs[0]] == [s for s, _ in runs[1]]
     assert sum(s.value == "ok" for s, _ in runs[0]) >= 10
     assert all(abs(a / b - 1) < 0.01 for (_, a), (_, b) in zip(*runs) if np.isfinite(a) and np.isfinite(b))
