@@ -19,11 +19,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vi3_core import so3
 from vi3_core.errors import DataError
+
+if TYPE_CHECKING:
+    from vi3_core.dataset.sequence import GroundTruthTrack
 
 SCALE_SKIP_CLIPS = 3
 
@@ -91,8 +95,8 @@ def segment_bounds(stamps: np.ndarray, starts) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def gt_path_length(gt, t0: float, t1: float) -> float:
-    """Metres ``gt`` (a ``vi3_core.dataset.sequence.GroundTruthTrack``) flies between t0 and t1 s, over every sample
+def gt_path_length(gt: GroundTruthTrack, t0: float, t1: float) -> float:
+    """Metres ``gt`` flies between t0 and t1 s, over every sample
     of the track in between: a chained trajectory's stretches without poses (clips not claimed or dropped) count
     with the distance actually flown, not as a straight line."""
     inside = gt.t[(gt.t > t0) & (gt.t < t1)]
