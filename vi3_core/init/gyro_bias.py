@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vi3_core import so3
-from vi3_core.preintegration import Grid, integrate_rotations, merged_grid
+from vi3_core.preintegration import Grid, frame_rotations, merged_grid
 from vi3_core.types import ImuSamples
 
 
@@ -45,10 +45,30 @@ def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg:
     point is exact whatever the Jacobian's error; the iteration converges while that error is < 100 %.
     """
     grid = grid or merged_grid(imu, stamps)
+    pairs = _FramePairs.of(stamps, R_vis)
     for _ in range(iters):
-        check = rotation_check(imu, stamps, R_vis, bg, grid=grid)
-        bg = bg - (check.dT[:, None] * check.residual).sum(0) / (check.dT**2).sum()
+        r = pairs.residual(frame_rotations(grid, bg))
+        bg = bg - (pairs.dT[:, None] * r).sum(0) / (pairs.dT**2).sum()
     return bg
+
+
+@dataclass(frozen=True)
+class _FramePairs:
+    """Every frame pair i < j [P] with dT [P] s and the backbone's relative rotations dR_vis [P,3,3]."""
+
+    i: np.ndarray
+    j: np.ndarray
+    dT: np.ndarray
+    dR_vis: np.ndarray
+
+    @staticmethod
+    def of(stamps: np.ndarray, R_vis: np.ndarray) -> _FramePairs:
+        i, j = np.triu_indices(len(stamps), k=1)
+        return _FramePairs(i, j, stamps[j] - stamps[i], np.swapaxes(R_vis[i], 1, 2) @ R_vis[j])
+
+    def residual(self, R: np.ndarray) -> np.ndarray:
+        """[P,3] rad: Log(dR_imu_ij^T dR_vis_ij) for the gyro's rotations R [n,3,3] at the frames."""
+        return so3.log(np.swapaxes(R[self.j], 1, 2) @ R[self.i] @ self.dR_vis)
 
 
 @dataclass(frozen=True)
@@ -81,10 +101,6 @@ def rotation_check(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg: n
                    grid: Grid | None = None) -> RotationCheck:
     """Residuals of the backbone's body rotations R_vis [n,3,3] against the gyro integrated with ``bg`` [3] rad/s over
     every frame pair (the quantity ``refine_gyro_bias`` minimises)."""
-    n = len(stamps)
-    i, j = np.triu_indices(n, k=1)
     grid = grid or merged_grid(imu, stamps)
-    R = integrate_rotations(grid, bg)[grid.frame_idx]
-    dR_vis = np.swapaxes(R_vis[i], 1, 2) @ R_vis[j]
-    r = so3.log(np.swapaxes(np.swapaxes(R[i], 1, 2) @ R[j], 1, 2) @ dR_vis)
-    return RotationCheck(residual=r, i=i, j=j, dT=stamps[j] - stamps[i])
+    pairs = _FramePairs.of(stamps, R_vis)
+    return RotationCheck(residual=pairs.residual(frame_rotations(grid, bg)), i=pairs.i, j=pairs.j, dT=pairs.dT)

@@ -33,10 +33,12 @@ with ``ImuNoiseModel.rel_floor`` for what the model leaves out.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import lapack
 
 from vi3_core import so3
 from vi3_core.init.position_fit import lever_arm_terms
@@ -239,105 +241,120 @@ class MetricFit:
         J = pre.J
         self.n_params = N_SHARED + N_CLIP * self.K
         self.blocks = []
+        row = 0
         for clip in clips:
             ii = np.searchsorted(stamps, clip.stamps)
             f = int(ii[0])
             dtau = pre.tau[ii] - pre.tau[f]
-            R_f, R_rel = pre.R[f], np.einsum("ji,njk->nik", pre.R[f], pre.R[ii])
+            R_f, R_rel = pre.R[f], pre.R[f].T @ pre.R[ii]
             J_ba = J.alpha_ba[ii] - J.alpha_ba[f] - J.beta_ba[f] * dtau[:, None, None]
+            J_bg = J.alpha_bg[ii] - J.alpha_bg[f] - J.beta_bg[f] * dtau[:, None, None]
+            D, U = np.linalg.eigh(noise.position_cov(dtau, so3.angle(R_rel), gravity_norm))
             self.blocks.append(_Block(
-                first=f, dtau=dtau, R_f=R_f, a=np.asarray(clip.T_wc, np.float64)[:, :3, 3] @ T_BC[:3, :3].T,
-                lever=lever_arm_terms(R_rel, T_BC),
+                first=f, row=row, dtau=dtau, half_dtau2=0.5 * dtau**2, R_f=R_f,
+                a=np.asarray(clip.T_wc, np.float64)[:, :3, 3] @ T_BC[:3, :3].T, lever=lever_arm_terms(R_rel, T_BC),
                 alpha=pre.alpha[ii] - pre.alpha[f] - pre.beta[f] * dtau[:, None], J_ba=J_ba,
-                J_bg=J.alpha_bg[ii] - J.alpha_bg[f] - J.beta_bg[f] * dtau[:, None, None],
-                phi_f=J.phi_bg[f], imu_cov=noise.position_cov(dtau, so3.angle(R_rel), gravity_norm),
-                half_dtau2_RfT=0.5 * dtau[:, None, None] ** 2 * R_f.T[None],
-                dtau_RfT=dtau[:, None, None] * R_f.T[None], RfT_J_ba=R_f.T @ J_ba))
+                imu_var=np.maximum(D, 0.0), imu_modes=U.T, dtau_RfT=dtau[:, None, None] * R_f.T[None],
+                RfT_J_ba=R_f.T @ J_ba, RfT_J_bg=R_f.T @ J_bg, RfT_hat_phi=(R_f.T @ _HAT_E @ J.phi_bg[f]).reshape(3, 9)))
+            row += 3 * len(dtau)
         self._bias_rows = np.zeros((6, self.n_params))
         self._bias_rows[0:3, 2:5] = np.eye(3) / noise.accel_bias_sigma
         self._bias_rows[3:6, 5:8] = np.eye(3) / self.bg_sigma
-        self.links = []
         self.link_scale = 1.0  # the ties' sigma relative to the noise model (variance component, see ``solve``)
-        for b0, b1 in zip(self.blocks[:-1], self.blocks[1:]):
-            f0, f1 = b0.first, b1.first
-            dt = float(pre.tau[f1] - pre.tau[f0])
-            self.links.append(_Link(dt=dt, dbeta=pre.beta[f1] - pre.beta[f0], J_ba=J.beta_ba[f1] - J.beta_ba[f0],
-                                    J_bg=J.beta_bg[f1] - J.beta_bg[f0],
-                                    sigma=noise.velocity_sigma(dt, float(so3.angle(pre.R[f0].T @ pre.R[f1])),
-                                                               gravity_norm)))
+        f = np.array([b.first for b in self.blocks])
+        f0, f1 = f[:-1], f[1:]
+        dt = pre.tau[f1] - pre.tau[f0]
+        angle = so3.angle(np.swapaxes(pre.R[f0], 1, 2) @ pre.R[f1]) if self.K > 1 else np.zeros(0)
+        self.links = _Links(dt=dt, dbeta=pre.beta[f1] - pre.beta[f0], J_ba=J.beta_ba[f1] - J.beta_ba[f0],
+                            J_bg=J.beta_bg[f1] - J.beta_bg[f0],
+                            sigma=np.array([noise.velocity_sigma(float(t), float(a), gravity_norm)
+                                            for t, a in zip(dt, angle)]), row=row)
 
     # ---- the model ----------------------------------------------------------------------------------------------
 
-    def _linearise(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...],
-                   whiten: bool = True):
-        """Residual y (model minus observation) and Jacobian A [m, p] at ``s``, whitened (visual rows by sigma_v and
-        the IMU covariance unless ``whiten`` is False: then raw, for the noise estimate), the row ranges by factor
-        ("vis k", "link k" between clips k-1 and k, "bias", "prior i") and g's tangent basis [3,2]."""
-        G, p = self.G, self.n_params
+    def _model(self, s: FitState, priors: tuple[GaussianPrior, ...]):
+        """Residual y (model minus observation) and Jacobian A [m, p] at ``s`` with every row whitened but the visual
+        ones: those are projected on the modes of their clip's IMU position covariance (``_Block.imu_modes``, rows
+        (mode, axis)) and left unscaled, for ``_weights`` (their noise varies with sigma_v and lam) or the noise
+        estimate; the row ranges by factor ("vis k", "link k" between clips k-1 and k, "bias", "prior i") and g's
+        tangent basis [3,2]."""
+        G, p, K = self.G, self.n_params, self.K
         B = _tangent_basis(s.g / G)
-        dbg = s.bg - self.bg0
-        ys, As, names = [], [], []
         GB = G * B
+        dbg = s.bg - self.bg0
+        lk = self.links
+        m = lk.row + 3 * (K - 1) + 6 + sum(prior.sqrt_info.shape[0] for prior in priors)
+        y, A = np.empty(m), np.zeros((m, p))
+        rows = {}
         for k, blk in enumerate(self.blocks):
-            lam, dtau, n = s.lam[k], blk.dtau, len(blk.dtau)
-            d = s.v[k] * dtau[:, None] + 0.5 * s.g * dtau[:, None] ** 2 + blk.alpha + blk.J_ba @ s.ba  # B0, m
-            J_bg = blk.J_bg + _cross_columns(d, blk.phi_f)  # the clip's frame turns with bg too
-            body = (d + J_bg @ dbg) @ blk.R_f - blk.lever
-            A = np.zeros((n, 3, p))
-            A[:, :, 0:2] = lam * (blk.half_dtau2_RfT @ GB)
-            A[:, :, 2:5] = lam * blk.RfT_J_ba
-            A[:, :, 5:8] = lam * (blk.R_f.T @ J_bg)
-            o = N_SHARED + N_CLIP * k
-            A[:, :, o] = body
-            A[:, :, o + 1:o + 4] = lam * blk.dtau_RfT
-            A[:, :, o + 4:o + 7] = _EYE3
-            r = lam * body + s.c[k] - blk.a
-            if whiten:
-                L = np.linalg.cholesky(sigma_v[k] ** 2 * np.eye(n) + lam**2 * blk.imu_cov)
-                r = np.linalg.solve(L, r)
-                A = np.linalg.solve(L, A.reshape(n, -1)).reshape(n, 3, p)
-            names.append(f"vis {k}")
-            ys.append(r.reshape(-1))
-            As.append(A.reshape(3 * n, p))
-        for k, link in enumerate(self.links, start=1):
-            r = s.v[k] - s.v[k - 1] - s.g * link.dt - link.dbeta - link.J_ba @ s.ba - link.J_bg @ dbg
-            A = np.zeros((3, p))
-            A[:, 0:2] = -link.dt * G * B
-            A[:, 2:5], A[:, 5:8] = -link.J_ba, -link.J_bg
-            o1, o0 = N_SHARED + N_CLIP * k, N_SHARED + N_CLIP * (k - 1)
-            A[:, o1 + 1:o1 + 4], A[:, o0 + 1:o0 + 4] = np.eye(3), -np.eye(3)
-            names.append(f"link {k}")
-            w = 1.0 / (link.sigma * self.link_scale)
-            ys.append(w * r)
-            As.append(w * A)
-        names.append("bias")  # ba ~ N(0, accel_bias_sigma^2), bg ~ N(bg0, bg_sigma^2)
-        ys.append(np.concatenate([s.ba / self.noise.accel_bias_sigma, dbg / self.bg_sigma]))
-        As.append(self._bias_rows)
+            lam, n = s.lam[k], len(blk.dtau)
+            d = s.v[k] * blk.dtau[:, None] + blk.half_dtau2[:, None] * s.g + blk.alpha + blk.J_ba @ s.ba  # B0, m
+            # d body / d bg in the clip's first frame: the clip's frame turns with bg too (R_f^T hat(d_i) phi_f)
+            RfT_J_bg = blk.RfT_J_bg + (d @ blk.RfT_hat_phi).reshape(n, 3, 3)
+            body = d @ blk.R_f + RfT_J_bg @ dbg - blk.lever
+            J = np.empty((n, 3, N_SHARED + N_CLIP))  # its shared unknowns, then its own
+            J[:, :, 0:2] = (lam * blk.half_dtau2)[:, None, None] * (blk.R_f.T @ GB)
+            J[:, :, 2:5] = lam * blk.RfT_J_ba
+            J[:, :, 5:8] = lam * RfT_J_bg
+            J[:, :, 8] = body
+            J[:, :, 9:12] = lam * blk.dtau_RfT
+            J[:, :, 12:15] = _EYE3
+            r0, r1, o = blk.row, blk.row + 3 * n, N_SHARED + N_CLIP * k
+            y[r0:r1] = (blk.imu_modes @ (lam * body + s.c[k] - blk.a)).reshape(-1)
+            J = (blk.imu_modes @ J.reshape(n, -1)).reshape(3 * n, -1)
+            A[r0:r1, 0:N_SHARED], A[r0:r1, o:o + N_CLIP] = J[:, :N_SHARED], J[:, N_SHARED:]
+            rows[f"vis {k}"] = range(r0, r1)
+        r0 = lk.row
+        if K > 1:  # the velocity ties, one [3]-row block each
+            w = 1.0 / (lk.sigma * self.link_scale)
+            r = s.v[1:] - s.v[:-1] - lk.dt[:, None] * s.g - lk.dbeta - lk.J_ba @ s.ba - lk.J_bg @ dbg
+            y[r0:r0 + 3 * (K - 1)] = (w[:, None] * r).reshape(-1)
+            A_l = A[r0:r0 + 3 * (K - 1)].reshape(K - 1, 3, p)
+            A_l[:, :, 0:2] = -(w * lk.dt)[:, None, None] * GB
+            A_l[:, :, 2:5], A_l[:, :, 5:8] = -w[:, None, None] * lk.J_ba, -w[:, None, None] * lk.J_bg
+            for k in range(1, K):
+                o1, o0 = N_SHARED + N_CLIP * k, N_SHARED + N_CLIP * (k - 1)
+                A_l[k - 1, :, o1 + 1:o1 + 4], A_l[k - 1, :, o0 + 1:o0 + 4] = w[k - 1] * _EYE3, -w[k - 1] * _EYE3
+                rows[f"link {k}"] = range(r0 + 3 * (k - 1), r0 + 3 * k)
+            r0 += 3 * (K - 1)
+        # ba ~ N(0, accel_bias_sigma^2), bg ~ N(bg0, bg_sigma^2)
+        y[r0:r0 + 3], y[r0 + 3:r0 + 6] = s.ba / self.noise.accel_bias_sigma, dbg / self.bg_sigma
+        A[r0:r0 + 6] = self._bias_rows
+        rows["bias"] = range(r0, r0 + 6)
+        r0 += 6
         if priors:
             z = np.concatenate([s.g, s.ba, s.bg, s.v[0]])
             Jz = np.zeros((12, p))
-            Jz[0:3, 0:2] = G * B
+            Jz[0:3, 0:2] = GB
             Jz[3:9, 2:8] = np.eye(6)
             Jz[9:12, N_SHARED + 1:N_SHARED + 4] = np.eye(3)
             for i, prior in enumerate(priors):
-                names.append(f"prior {i}")
-                ys.append(prior.residual(z))
-                As.append(prior.sqrt_info @ Jz)
-        ends = np.cumsum([len(y) for y in ys])
-        rows = {name: range(int(e - len(y)), int(e)) for name, y, e in zip(names, ys, ends)}
-        return np.concatenate(ys), np.vstack(As), rows, B
+                r1 = r0 + prior.sqrt_info.shape[0]
+                y[r0:r1], A[r0:r1] = prior.residual(z), prior.sqrt_info @ Jz
+                rows[f"prior {i}"] = range(r0, r1)
+                r0 = r1
+        return y, A, rows, B
+
+    def _weights(self, s: FitState, sigma_v: np.ndarray, m: int) -> np.ndarray:
+        """[m] weights that whiten ``_model``'s rows: a visual row on mode j of clip k has variance sigma_v,k^2 +
+        lam_k^2 d_j (d_j the mode's IMU position variance), the other rows are whitened already."""
+        w = np.ones(m)
+        for k, blk in enumerate(self.blocks):
+            v = sigma_v[k] ** 2 + s.lam[k] ** 2 * blk.imu_var
+            w[blk.row:blk.row + 3 * len(v)] = np.repeat(1.0 / np.sqrt(v), 3)
+        return w
+
+    def _linearise(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]):
+        """``_model`` whitened: y [m], A [m, p], the row ranges and g's tangent basis [3,2]."""
+        y, A, rows, B = self._model(s, priors)
+        w = self._weights(s, sigma_v, len(y))
+        return w * y, w[:, None] * A, rows, B
 
     def _step(self, s: FitState, dx: np.ndarray, B: np.ndarray) -> FitState:
-        out = s.copy()
         g = s.g - self.G * B @ dx[0:2]
-        out.g = self.G * g / np.linalg.norm(g)
-        out.ba -= dx[2:5]
-        out.bg -= dx[5:8]
         per = dx[N_SHARED:].reshape(self.K, N_CLIP)
-        out.lam -= per[:, 0]
-        out.v -= per[:, 1:4]
-        out.c -= per[:, 4:7]
-        return out
+        return FitState(self.G * g / np.linalg.norm(g), s.ba - dx[2:5], s.bg - dx[5:8], s.lam - per[:, 0],
+                        s.v - per[:, 1:4], s.c - per[:, 4:7])
 
     # ---- solution -----------------------------------------------------------------------------------------------
 
@@ -349,17 +366,17 @@ class MetricFit:
         s = FitState(self.G * np.asarray(g, np.float64) / np.linalg.norm(g), np.zeros(3), self.bg0.copy(),
                      np.ones(K), np.zeros((K, 3)), np.zeros((K, 3)))
         for k, blk in enumerate(self.blocks):
-            dtau, n = blk.dtau, len(blk.dtau)
-            X = np.zeros((n, 3, 7))
-            X[:, :, 0] = (0.5 * s.g * dtau[:, None] ** 2 + blk.alpha) @ blk.R_f - blk.lever
-            X[:, :, 1:4] = dtau[:, None, None] * blk.R_f.T[None]
-            X[:, :, 4:7] = np.eye(3)
+            n = len(blk.dtau)
+            X = np.empty((n, 3, 7))
+            X[:, :, 0] = (blk.half_dtau2[:, None] * s.g + blk.alpha) @ blk.R_f - blk.lever
+            X[:, :, 1:4] = blk.dtau_RfT
+            X[:, :, 4:7] = _EYE3
             X, y = X.reshape(3 * n, 7), blk.a.reshape(-1)
             if lam is not None and np.isfinite(lam[k]):
                 s.lam[k] = float(lam[k])
-                coef = np.linalg.lstsq(X[:, 1:], y - s.lam[k] * X[:, 0], rcond=None)[0]
+                coef = _lstsq(X[:, 1:], y - s.lam[k] * X[:, 0])
             else:
-                coef = np.linalg.lstsq(X, y, rcond=None)[0]
+                coef = _lstsq(X, y)
                 s.lam[k], coef = coef[0], coef[1:]
             s.v[k] = blk.R_f @ coef[0:3] / s.lam[k] if s.lam[k] != 0.0 else np.zeros(3)
             s.c[k] = coef[3:6]
@@ -369,7 +386,7 @@ class MetricFit:
               tol: float = 1e-4) -> FitResult:
         """Gauss-Newton from ``state`` until every scale moves by less than ``tol`` of itself (and gravity by less
         than tol / 10 rad), far below any scale's sigma. A single clip without ``sigma_v`` gets it by restricted
-        maximum likelihood (``visual_noise``) at the start."""
+        maximum likelihood (``_visual_noise``) at the start."""
         sigma_v = np.array([np.nan if c.sigma_v is None else float(c.sigma_v) for c in self.clips])
         estimate = not np.isfinite(sigma_v).all()
         if estimate and self.K != 1:
@@ -391,49 +408,50 @@ class MetricFit:
     def _gauss_newton(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], iterations: int,
                       tol: float, estimate: bool) -> tuple[FitState, bool]:
         for it in range(iterations):
+            y, A, _, B = self._model(s, priors)
             if estimate and it == 0:  # at the linear starting point: re-estimating it later changes nothing
-                sigma_v[0] = self.visual_noise(s, priors)
-            y, A, _, B = self._linearise(s, sigma_v, priors)
-            dx = np.linalg.lstsq(A, y, rcond=None)[0]
+                sigma_v[0] = self._visual_noise(s, y, A)
+            w = self._weights(s, sigma_v, len(y))
+            dx = _lstsq(w[:, None] * A, w * y)
             s = self._step(s, dx, B)
             if it >= 1 and np.all(np.abs(dx[N_SHARED::N_CLIP]) <= tol * np.abs(s.lam)) \
                     and np.abs(dx[:2]).max() <= 0.1 * tol:
                 return s, True
         return s, False
 
-    def visual_noise(self, s: FitState, priors: tuple[GaussianPrior, ...] = (), *, iterations: int = 8) -> float:
+    def _visual_noise(self, s: FitState, y: np.ndarray, A: np.ndarray, *, iterations: int = 8) -> float:
         """The single clip's visual noise sigma_v (model units, per axis) that maximises the restricted likelihood of
-        its residuals at ``s``: covariance sigma_v^2 I + lam^2 Sigma_imu per axis, the linear correction of every
-        unknown profiled out (Fisher scoring on log sigma_v^2, in the eigenbasis of Sigma_imu)."""
+        its residuals at ``s`` (y, A: ``_model`` there): covariance sigma_v^2 I + lam^2 Sigma_imu per axis, the linear
+        correction of every unknown profiled out (Fisher scoring on log sigma_v^2, in the eigenbasis of Sigma_imu)."""
         blk, lam = self.blocks[0], float(s.lam[0])
-        n = len(blk.dtau)
-        y, A, _, _ = self._linearise(s, np.ones(1), priors, whiten=False)
-        D, U = np.linalg.eigh(lam**2 * blk.imu_cov)
-        D = np.maximum(D, 0.0)
-        r_m = U.T @ y[:3 * n].reshape(n, 3)  # [modes, axes]
-        J_m = np.einsum("nm,nxp->mxp", U, A[:3 * n].reshape(n, 3, -1))
-        M = np.einsum("mxp,mxq->mpq", J_m, J_m)
-        Jr = np.einsum("mxp,mx->mp", J_m, r_m)
+        n, p = len(blk.dtau), A.shape[1]
+        D = lam**2 * blk.imu_var
+        r_m = y[:3 * n].reshape(n, 3)  # [modes, axes]
+        J_m = A[:3 * n].reshape(n, 3, p)
+        J_mT = np.swapaxes(J_m, 1, 2)
+        M = (J_mT @ J_m).reshape(n, p * p)  # per mode J^T J, flattened
+        Jr = (J_mT @ r_m[:, :, None])[:, :, 0]
         P_A, P_y = A[3 * n:], y[3 * n:]
         H0, g0 = P_A.T @ P_A, P_A.T @ P_y
         floor = 1e-12 * max(float((blk.a**2).sum()) / n, 1e-12)  # model units: relative to the clip's extent
         theta = max(float((r_m**2).mean()), floor)
         for _ in range(iterations):
             w = 1.0 / (theta + D)
-            H = H0 + np.einsum("m,mpq->pq", w, M)
+            w2 = w * w
+            H, M2, M3 = (np.stack([w, w2, w2 * w]) @ M).reshape(3, p, p)
+            H += H0
             try:
                 Hi = np.linalg.inv(H)
             except np.linalg.LinAlgError:
                 Hi = np.linalg.pinv(H)
             beta = Hi @ (g0 + w @ Jr)
             e = r_m - J_m @ beta  # [modes, axes]
-            M2 = np.einsum("m,mpq->pq", w**2, M)
             HM2 = Hi @ M2
-            tr_P = 3.0 * float(w.sum()) - float(np.trace(HM2))
-            tr_PP = (3.0 * float((w**2).sum()) - 2.0 * float(np.trace(Hi @ np.einsum("m,mpq->pq", w**3, M)))
-                     + float(np.trace(HM2 @ HM2)))
+            # traces of products of symmetric matrices as sums of elementwise products
+            tr_P = 3.0 * float(w.sum()) - float((Hi * M2).sum())
+            tr_PP = 3.0 * float(w2.sum()) - 2.0 * float((Hi * M3).sum()) + float((HM2 * HM2.T).sum())
             score = 0.5 * (float(((w[:, None] * e) ** 2).sum()) - tr_P)  # d loglik / d theta
-            step = float(np.clip(score / (0.5 * tr_PP * theta), -2.0, 2.0)) if tr_PP > 0 else 0.0
+            step = min(max(score / (0.5 * tr_PP * theta), -2.0), 2.0) if tr_PP > 0 else 0.0
             theta = max(theta * math.exp(step), floor)
             if abs(step) < 1e-2:  # sigma_v to 0.5 %: its own uncertainty (~12 dof) is 20 %
                 break
@@ -447,10 +465,11 @@ class MetricFit:
         cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep]
         undetermined = (np.abs(Vt[~keep]) > 1e-6).any(0) if (~keep).any() else np.zeros(self.n_params, bool)
         leverage = (U[:, keep] ** 2).sum(1)
-        vis = [np.array(rows[f"vis {k}"]) for k in range(self.K)]
-        links = [np.array(rows[f"link {k}"]) for k in range(1, self.K)]
-        chi2, link_chi2 = ([float((y[r] ** 2).sum()) for r in group] for group in (vis, links))
-        dof, link_dof = ([max(float(len(r) - leverage[r].sum()), 1e-3) for r in group] for group in (vis, links))
+        vis = [rows[f"vis {k}"] for k in range(self.K)]
+        links = [rows[f"link {k}"] for k in range(1, self.K)]
+        chi2, link_chi2 = ([float((y[r.start:r.stop] ** 2).sum()) for r in group] for group in (vis, links))
+        dof, link_dof = ([max(float(len(r) - leverage[r.start:r.stop].sum()), 1e-3) for r in group]
+                         for group in (vis, links))
         dof_total = max(float(len(y) - leverage.sum()), 1.0)
         vf = max(1.0, float(y @ y) / dof_total)
         lam = s.lam
@@ -506,47 +525,63 @@ class MetricFit:
 
 @dataclass(frozen=True)
 class _Block:
-    """Precomputed terms of one clip (see ``MetricFit._linearise``): first stamp index, dtau [n], R_f [3,3], a [n,3],
-    lever [n,3], alpha [n,3] (bias-free displacement part, B0), J_ba, J_bg [n,3,3], phi_f [3,3], imu_cov [n,n], and
-    the constant Jacobian factors half_dtau2_RfT, dtau_RfT, RfT_J_ba [n,3,3]."""
+    """Precomputed terms of one clip (see ``MetricFit._model``): first stamp index; row: its first row in the model;
+    dtau, half_dtau2 = dtau^2 / 2 [n]; R_f [3,3]; a [n,3]; lever [n,3]; alpha [n,3] (bias-free displacement part, B0);
+    J_ba [n,3,3]; its IMU position covariance (``ImuNoiseModel.position_cov``) as variances imu_var [n] (m^2) along
+    the rows of imu_modes [n,n] (orthonormal); the constant Jacobian factors dtau_RfT, RfT_J_ba, RfT_J_bg [n,3,3]
+    (R_f^T times the displacement's bias Jacobians); and RfT_hat_phi [3,9], R_f^T hat(e_a) phi_f for the axes a
+    (phi_f: the first frame's rotation Jacobian), so that d @ RfT_hat_phi is R_f^T hat(d_i) phi_f, flattened."""
 
     first: int
+    row: int
     dtau: np.ndarray
+    half_dtau2: np.ndarray
     R_f: np.ndarray
     a: np.ndarray
     lever: np.ndarray
     alpha: np.ndarray
     J_ba: np.ndarray
-    J_bg: np.ndarray
-    phi_f: np.ndarray
-    imu_cov: np.ndarray
-    half_dtau2_RfT: np.ndarray
+    imu_var: np.ndarray
+    imu_modes: np.ndarray
     dtau_RfT: np.ndarray
     RfT_J_ba: np.ndarray
+    RfT_J_bg: np.ndarray
+    RfT_hat_phi: np.ndarray
 
 
 @dataclass(frozen=True)
-class _Link:
-    """Velocity tie between consecutive clips: dt s, dbeta [3] m/s, J_ba, J_bg [3,3], sigma m/s."""
+class _Links:
+    """The K-1 velocity ties between consecutive clips (tie k-1 joins clips k-1 and k): dt [K-1] s, dbeta [K-1,3] m/s,
+    J_ba, J_bg [K-1,3,3], sigma [K-1] m/s; row: the first of their 3 (K-1) rows in the model."""
 
-    dt: float
+    dt: np.ndarray
     dbeta: np.ndarray
     J_ba: np.ndarray
     J_bg: np.ndarray
-    sigma: float
+    sigma: np.ndarray
+    row: int
 
 
 _EYE3 = np.eye(3)
+_HAT_E = so3.hat(np.eye(3))  # [3,3,3]: hat of each axis
 
 
-def _cross_columns(d: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """hat(d_i) @ M for d [n,3] and M [3,3] -> [n,3,3] (each column of M crossed with d_i)."""
-    out = np.empty((len(d), 3, 3))
-    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
-    out[:, 0] = dy * M[2] - dz * M[1]
-    out[:, 1] = dz * M[0] - dx * M[2]
-    out[:, 2] = dx * M[1] - dy * M[0]
-    return out
+def _lstsq(A: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The minimum-norm least-squares solution x [n] of A [m,n] x = y [m] (m >= n), the rank taken where the condition
+    number reaches 1 / (eps max(m, n)), as ``np.linalg.lstsq(A, y, rcond=None)``; by LAPACK's complete orthogonal
+    factorisation (gelsy), a quarter of the cost of numpy's SVD on the fit's small systems."""
+    m, n = A.shape
+    cond = np.finfo(np.float64).eps * max(m, n)
+    x, info = lapack.dgelsy(A, y, np.zeros(n, np.int32), cond, _gelsy_lwork(m, n, cond))[1::3]
+    if info != 0:
+        raise np.linalg.LinAlgError(f"lstsq: LAPACK gelsy failed (info {info}) on a {m}x{n} system")
+    return x[:n]
+
+
+@functools.lru_cache(maxsize=64)
+def _gelsy_lwork(m: int, n: int, cond: float) -> int:
+    work, info = lapack.dgelsy_lwork(m, n, 1, cond)
+    return int(work)
 
 
 def _t975(dof: float) -> float:
@@ -557,12 +592,14 @@ def _t975(dof: float) -> float:
 
 def _tangent_basis(u: np.ndarray) -> np.ndarray:
     """Two unit vectors [3,2] orthogonal to the unit vector u and to each other."""
-    e = np.zeros(3)
-    e[int(np.argmin(np.abs(u)))] = 1.0
-    b1 = np.array([u[1] * e[2] - u[2] * e[1], u[2] * e[0] - u[0] * e[2], u[0] * e[1] - u[1] * e[0]])
-    b1 /= np.linalg.norm(b1)
-    b2 = np.array([u[1] * b1[2] - u[2] * b1[1], u[2] * b1[0] - u[0] * b1[2], u[0] * b1[1] - u[1] * b1[0]])
-    return np.column_stack([b1, b2])
+    ux, uy, uz = (float(c) for c in u)  # plain floats: numpy's per-call cost dwarfs the arithmetic here
+    size = [abs(ux), abs(uy), abs(uz)]
+    axis = size.index(min(size))  # the axis least aligned with u
+    ex, ey, ez = (1.0 if a == axis else 0.0 for a in range(3))
+    b1x, b1y, b1z = uy * ez - uz * ey, uz * ex - ux * ez, ux * ey - uy * ex
+    norm = math.sqrt(b1x * b1x + b1y * b1y + b1z * b1z)
+    b1x, b1y, b1z = b1x / norm, b1y / norm, b1z / norm
+    return np.array([[b1x, uy * b1z - uz * b1y], [b1y, uz * b1x - ux * b1z], [b1z, ux * b1y - uy * b1x]])
 
 
 __all__ = ["FitClip", "FitResult", "FitState", "GaussianPrior", "ImuNoiseModel", "MetricFit", "fit_stamps"]
