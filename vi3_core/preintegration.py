@@ -23,6 +23,7 @@ rotation chain is a parallel prefix product (log2(M) batched matmuls), so nothin
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -32,29 +33,59 @@ from vi3_core.types import ImuSamples, ImuTrajectory
 
 def cumulative_rotations(dR: np.ndarray) -> np.ndarray:
     """[K,3,3] increments -> [K+1,3,3] prefix products R_0 = I, R_k = dR_0 @ ... @ dR_{k-1}."""
-    P = dR.copy()
+    out = np.empty((len(dR) + 1, 3, 3))
+    out[0], out[1:] = np.eye(3), dR
+    P = out[1:]
     shift = 1
     while shift < len(P):
         P[shift:] = P[:-shift] @ P[shift:]  # right side is evaluated first: a Hillis-Steele scan step
         shift *= 2
-    return np.concatenate([np.eye(3)[None], P], axis=0)
+    return out
 
 
 @dataclass(frozen=True)
 class Grid:
-    """The integration grid: t [K] s, gyro [K,3], accel [K,3] on it, frame_idx [n] positions of the stamps."""
+    """The integration grid: t [K] s, gyro [K,3], accel [K,3] on it, frame_idx [n] positions of the stamps; what
+    does not depend on a bias estimate is computed once per grid (the properties)."""
 
     t: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
     frame_idx: np.ndarray
 
+    @cached_property
+    def dt(self) -> np.ndarray:
+        """[K-1] s, the grid intervals."""
+        return np.diff(self.t)
+
+    @cached_property
+    def mid_gyro(self) -> np.ndarray:
+        """[K-1,3] rad/s, the raw gyro at each interval's midpoint (w_k + w_{k+1}) / 2."""
+        return 0.5 * (self.gyro[:-1] + self.gyro[1:])
+
+    @cached_property
+    def gyro_mean(self) -> np.ndarray:
+        """[n-1,3] rad/s, the time average of the raw gyro over each frame interval (trapezoidal)."""
+        w_int = np.concatenate([np.zeros((1, 3)), np.cumsum(self.mid_gyro * self.dt[:, None], 0)])
+        fi = self.frame_idx
+        return np.diff(w_int[fi], axis=0) / np.diff(self.t[fi])[:, None]
+
+    @cached_property
+    def frame_steps(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each frame interval's steps padded to a power-of-two width w: (index [n-1,w] into the K-1 steps, pad
+        [n-1,w] True where an identity fills in), for ``frame_rotations``."""
+        fi = self.frame_idx
+        count = np.diff(fi)
+        k = np.arange(1 << int(count.max() - 1).bit_length())
+        return np.minimum(fi[:-1, None] + k, len(self.t) - 2), k >= count[:, None]
+
 
 def merged_grid(imu: ImuSamples, stamps: np.ndarray) -> Grid:
     """Frame stamps merged with the IMU stamps strictly between them, and the IMU interpolated on that grid."""
     stamps = np.asarray(stamps, dtype=np.float64)
-    inside = (imu.t > stamps[0]) & (imu.t < stamps[-1]) & ~np.isin(imu.t, stamps)
-    t = np.sort(np.concatenate([stamps, imu.t[inside]]), kind="stable")
+    inside = imu.t[(imu.t > stamps[0]) & (imu.t < stamps[-1])]
+    inside = inside[stamps[np.searchsorted(stamps, inside)] != inside]  # not a stamp itself (stamps are sorted)
+    t = np.sort(np.concatenate([stamps, inside]), kind="stable")
     gyro = np.stack([np.interp(t, imu.t, imu.gyro[:, a]) for a in range(3)], -1)
     accel = np.stack([np.interp(t, imu.t, imu.accel[:, a]) for a in range(3)], -1)
     return Grid(t, gyro, accel, np.searchsorted(t, stamps))
@@ -122,8 +153,7 @@ class Preintegration:
 
 def _rotation_steps(grid: Grid, bg: np.ndarray) -> np.ndarray:
     """[K-1,3,3] the rotation over each grid interval with the midpoint rate (w_k + w_{k+1}) / 2 - bg."""
-    dt = np.diff(grid.t)
-    return so3.exp((0.5 * (grid.gyro[:-1] + grid.gyro[1:]) - bg) * dt[:, None])
+    return so3.exp((grid.mid_gyro - bg) * grid.dt[:, None])
 
 
 def integrate_rotations(grid: Grid, bg: np.ndarray) -> np.ndarray:
@@ -135,24 +165,12 @@ def frame_rotations(grid: Grid, bg: np.ndarray) -> np.ndarray:
     """R_B1Bi [n,3,3] at the frames only: ``integrate_rotations(grid, bg)[grid.frame_idx]`` up to round-off, at a
     fraction of its cost. Each frame interval's steps are multiplied pairwise in a tree (padded with identities to a
     power of two), then the n-1 interval rotations are chained."""
-    dR = _rotation_steps(grid, bg)
-    fi = grid.frame_idx
-    count = np.diff(fi)
-    width = 1 << int(count.max() - 1).bit_length()
-    k = np.arange(width)
-    P = dR[np.minimum(fi[:-1, None] + k, len(dR) - 1)]  # [n-1, width, 3, 3]
-    P[k >= count[:, None]] = np.eye(3)
+    index, pad = grid.frame_steps
+    P = _rotation_steps(grid, bg)[index]  # [n-1, width, 3, 3]
+    P[pad] = np.eye(3)
     while P.shape[1] > 1:
         P = P[:, 0::2] @ P[:, 1::2]
     return cumulative_rotations(P[:, 0])
-
-
-def interval_gyro_mean(grid: Grid) -> np.ndarray:
-    """Time average of the raw gyro over each frame interval [n-1,3], rad/s (trapezoidal)."""
-    dt = np.diff(grid.t)
-    w_int = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (grid.gyro[:-1] + grid.gyro[1:]) * dt[:, None], 0)])
-    fi = grid.frame_idx
-    return np.diff(w_int[fi], axis=0) / np.diff(grid.t[fi])[:, None]
 
 
 def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.ndarray | None = None, *,
@@ -167,7 +185,7 @@ def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.nda
     bg = np.asarray(bg, dtype=np.float64)
     ba = np.zeros(3) if ba is None else np.asarray(ba, dtype=np.float64)
     grid = grid or merged_grid(imu, stamps)
-    dt = np.diff(grid.t)
+    dt = grid.dt
     R = integrate_rotations(grid, bg)
     force = np.einsum("kij,kj->ki", R, grid.accel - ba)
     beta, alpha = _integrate_force(force, dt)
@@ -182,7 +200,7 @@ def preintegrate(imu: ImuSamples, stamps: np.ndarray, bg: np.ndarray, ba: np.nda
         beta_ba, alpha_ba = _integrate_force(-R, dt)
         J = BiasJacobians(phi[fi], beta_bg[fi], alpha_bg[fi], beta_ba[fi], alpha_ba[fi])
     return Preintegration(stamps=stamps, tau=stamps - stamps[0], R=R[fi], beta=beta[fi], alpha=alpha[fi],
-                          gyro_mean=interval_gyro_mean(grid), bg=bg, ba=ba, J=J)
+                          gyro_mean=grid.gyro_mean, bg=bg, ba=ba, J=J)
 
 
 def _integrate_force(f: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,14 +22,26 @@ def hat(w: np.ndarray) -> np.ndarray:
 def exp(w: np.ndarray) -> np.ndarray:
     """Exp: [...,3] rotation vectors -> [...,3,3] rotation matrices (Rodrigues; Taylor terms below 1e-4 rad)."""
     w = np.asarray(w, dtype=np.float64)
-    th2 = (w * w).sum(-1)[..., None, None]
+    th2 = (w * w).sum(-1)
     small = th2 < 1e-8
     th2s = np.where(small, 1.0, th2)
     th = np.sqrt(th2s)
     a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / th)
     b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / th2s)
-    K = hat(w)
-    return np.eye(3) + a * K + b * (K @ K)
+    # I + a K + b K^2 with K^2 = w w^T - th2 I, written into one array (numpy's per-call cost dominates 3x3 blocks)
+    R = (b[..., None] * w)[..., :, None] * w[..., None, :]
+    aw = a[..., None] * w
+    c = 1.0 - b * th2
+    R[..., 0, 0] += c
+    R[..., 1, 1] += c
+    R[..., 2, 2] += c
+    R[..., 0, 1] -= aw[..., 2]
+    R[..., 0, 2] += aw[..., 1]
+    R[..., 1, 0] += aw[..., 2]
+    R[..., 1, 2] -= aw[..., 0]
+    R[..., 2, 0] -= aw[..., 1]
+    R[..., 2, 1] += aw[..., 0]
+    return R
 
 
 def log(R: np.ndarray) -> np.ndarray:
@@ -39,9 +51,13 @@ def log(R: np.ndarray) -> np.ndarray:
     scipy's quaternion-based conversion.
     """
     R = np.asarray(R, dtype=np.float64)
-    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) * 0.5, -1.0, 1.0)
-    sin = 0.5 * np.linalg.norm(vee, axis=-1)
+    vee = np.empty(R.shape[:-1])
+    np.subtract(R[..., 2, 1], R[..., 1, 2], out=vee[..., 0])
+    np.subtract(R[..., 0, 2], R[..., 2, 0], out=vee[..., 1])
+    np.subtract(R[..., 1, 0], R[..., 0, 1], out=vee[..., 2])
+    # the trace, clip and norm spelled out: numpy's wrappers cost more than the arithmetic on small batches
+    cos = np.minimum(np.maximum((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) * 0.5, -1.0), 1.0)
+    sin = 0.5 * np.sqrt((vee * vee).sum(-1))
     th = np.arctan2(sin, cos)
     small = th < 1e-4
     factor = np.where(small, 0.5 + th * th / 12.0, 0.5 * th / np.where(small, 1.0, sin))

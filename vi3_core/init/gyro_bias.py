@@ -8,6 +8,7 @@ whose relative rotations disagree with the bias-corrected gyro by degrees is a b
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,9 +47,10 @@ def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg:
     """
     grid = grid or merged_grid(imu, stamps)
     pairs = _FramePairs.of(stamps, R_vis)
+    weight = pairs.dT[:, None] / (pairs.dT**2).sum()
     for _ in range(iters):
         r = pairs.residual(frame_rotations(grid, bg))
-        bg = bg - (pairs.dT[:, None] * r).sum(0) / (pairs.dT**2).sum()
+        bg = bg - (weight * r).sum(0)
     return bg
 
 
@@ -63,12 +65,20 @@ class _FramePairs:
 
     @staticmethod
     def of(stamps: np.ndarray, R_vis: np.ndarray) -> _FramePairs:
-        i, j = np.triu_indices(len(stamps), k=1)
+        i, j = _pair_indices(len(stamps))
         return _FramePairs(i, j, stamps[j] - stamps[i], np.swapaxes(R_vis[i], 1, 2) @ R_vis[j])
 
     def residual(self, R: np.ndarray) -> np.ndarray:
         """[P,3] rad: Log(dR_imu_ij^T dR_vis_ij) for the gyro's rotations R [n,3,3] at the frames."""
         return so3.log(np.swapaxes(R[self.j], 1, 2) @ R[self.i] @ self.dR_vis)
+
+
+@functools.lru_cache(maxsize=16)
+def _pair_indices(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j) [n (n-1) / 2] of every frame pair i < j, read-only (shared between calls)."""
+    i, j = np.triu_indices(n, k=1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from vi3_core.init.metric_fit import FitClip, MetricFit
 from vi3_core.init.options import InitOptions
 from vi3_core.init.position_fit import body_position_terms
 from vi3_core.init.velocity_gravity import ScaleGravitySystem
-from vi3_core.preintegration import interval_gyro_mean, merged_grid, preintegrate
+from vi3_core.preintegration import merged_grid, preintegrate
 from vi3_core.threads import single_blas_thread
 from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus
 
@@ -101,7 +101,7 @@ def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: n
     # Gyro bias: Eq. bg, then the all-pairs refinement; then the backbone's rotations must agree with it.
     R_vis = body_rotations(geometry.T_wc[:, :3, :3], T_BC)
     grid = merged_grid(imu, stamps)
-    bg = gyro_bias_eq(R_vis, interval_gyro_mean(grid), np.diff(stamps), dt_imu)
+    bg = gyro_bias_eq(R_vis, grid.gyro_mean, np.diff(stamps), dt_imu)
     bg_eq = bg.copy()
     bg = refine_gyro_bias(imu, stamps, R_vis, bg, options.bg_refine_iters, grid=grid)
     check = rotation_check(imu, stamps, R_vis, bg, grid=grid)

@@ -85,7 +85,7 @@ class ImuNoiseModel:
         """[n,n] covariance (m^2, per axis) of the IMU displacements at dtau [n] s after the first stamp, where the body
         has turned ``angle`` [n] rad: the accelerometer's white noise integrated twice, plus the gyro scale error's
         tilt of gravity (G kappa angle_i dtau_i^2 / 6: a rotation error growing with the angle, integrated twice)."""
-        ti, tj = np.meshgrid(dtau, dtau, indexing="ij")
+        ti, tj = dtau[:, None], dtau[None, :]
         m = np.minimum(ti, tj)
         cov = self.accel_noise_density**2 * (ti * tj * m - 0.5 * (ti + tj) * m**2 + m**3 / 3.0)
         f = gravity_norm * self.gyro_scale_error * angle * dtau**2 / 6.0
@@ -353,7 +353,7 @@ class MetricFit:
     def _step(self, s: FitState, dx: np.ndarray, B: np.ndarray) -> FitState:
         g = s.g - self.G * B @ dx[0:2]
         per = dx[N_SHARED:].reshape(self.K, N_CLIP)
-        return FitState(self.G * g / np.linalg.norm(g), s.ba - dx[2:5], s.bg - dx[5:8], s.lam - per[:, 0],
+        return FitState(self.G * g / math.hypot(*g), s.ba - dx[2:5], s.bg - dx[5:8], s.lam - per[:, 0],
                         s.v - per[:, 1:4], s.c - per[:, 4:7])
 
     # ---- solution -----------------------------------------------------------------------------------------------
@@ -434,22 +434,19 @@ class MetricFit:
         P_A, P_y = A[3 * n:], y[3 * n:]
         H0, g0 = P_A.T @ P_A, P_A.T @ P_y
         floor = 1e-12 * max(float((blk.a**2).sum()) / n, 1e-12)  # model units: relative to the clip's extent
-        theta = max(float((r_m**2).mean()), floor)
+        theta = max(float((r_m**2).sum()) / r_m.size, floor)
         for _ in range(iterations):
             w = 1.0 / (theta + D)
             w2 = w * w
-            H, M2, M3 = (np.stack([w, w2, w2 * w]) @ M).reshape(3, p, p)
+            H, M2, M3 = (np.array((w, w2, w2 * w)) @ M).reshape(3, p, p)
             H += H0
-            try:
-                Hi = np.linalg.inv(H)
-            except np.linalg.LinAlgError:
-                Hi = np.linalg.pinv(H)
+            Hi = _inv(H)
             beta = Hi @ (g0 + w @ Jr)
             e = r_m - J_m @ beta  # [modes, axes]
             HM2 = Hi @ M2
-            # traces of products of symmetric matrices as sums of elementwise products
-            tr_P = 3.0 * float(w.sum()) - float((Hi * M2).sum())
-            tr_PP = 3.0 * float(w2.sum()) - 2.0 * float((Hi * M3).sum()) + float((HM2 * HM2.T).sum())
+            # traces of products of symmetric matrices as dot products of their elements
+            tr_P = 3.0 * float(w.sum()) - float(np.vdot(Hi, M2))
+            tr_PP = 3.0 * float(w2.sum()) - 2.0 * float(np.vdot(Hi, M3)) + float(np.vdot(HM2, HM2.T))
             score = 0.5 * (float(((w[:, None] * e) ** 2).sum()) - tr_P)  # d loglik / d theta
             step = min(max(score / (0.5 * tr_PP * theta), -2.0), 2.0) if tr_PP > 0 else 0.0
             theta = max(theta * math.exp(step), floor)
@@ -578,6 +575,17 @@ def _lstsq(A: np.ndarray, y: np.ndarray) -> np.ndarray:
     return x[:n]
 
 
+def _inv(H: np.ndarray) -> np.ndarray:
+    """H^-1 [n,n] by LU (LAPACK getrf/getri, as ``np.linalg.inv`` at a third of its call cost), the pseudo-inverse
+    where H is exactly singular."""
+    lu, piv, info = lapack.dgetrf(H)
+    if info == 0:
+        Hi, info = lapack.dgetri(lu, piv)
+        if info == 0:
+            return Hi
+    return np.linalg.pinv(H)
+
+
 @functools.lru_cache(maxsize=64)
 def _gelsy_lwork(m: int, n: int, cond: float) -> int:
     work, info = lapack.dgelsy_lwork(m, n, 1, cond)
@@ -592,7 +600,7 @@ def _t975(dof: float) -> float:
 
 def _tangent_basis(u: np.ndarray) -> np.ndarray:
     """Two unit vectors [3,2] orthogonal to the unit vector u and to each other."""
-    ux, uy, uz = (float(c) for c in u)  # plain floats: numpy's per-call cost dwarfs the arithmetic here
+    ux, uy, uz = u.tolist()  # plain floats: numpy's per-call cost dwarfs the arithmetic here
     size = [abs(ux), abs(uy), abs(uz)]
     axis = size.index(min(size))  # the axis least aligned with u
     ex, ey, ez = (1.0 if a == axis else 0.0 for a in range(3))
