@@ -21,7 +21,7 @@ from vi3_core.types import ImuSamples
 STEPS = 12
 #: These tests are about anchoring, not about which clips may claim a scale (tests/test_init.py): a single 0.7 s
 #: clip rarely passes the error model's gate on its own, so the gate is opened here.
-OPEN_GATE = InitOptions(max_scale_rel_sigma=10.0)
+OPEN_GATE = InitOptions(max_scale_sigma=10.0)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def backbone():
 
 def test_ttr_reports_init_first_then_refines_and_restores_the_weights(clip, backbone):
     seen = []
-    result = anchor(clip, backbone, mode="ttr", options=AnchorOptions(steps=STEPS), on_init=seen.append,
+    result = anchor(clip, backbone, mode="ttr", options=AnchorOptions(ttr_steps=STEPS), on_init=seen.append,
                     init_options=OPEN_GATE)
     assert len(seen) == 1 and seen[0].mode == "init" and seen[0].geometry.metric
     assert result.mode == "ttr" and result.status == "ok" and result.geometry.metric
@@ -49,7 +49,7 @@ def test_ttr_reports_init_first_then_refines_and_restores_the_weights(clip, back
     # corrections for the classical backbone).
     for p in backbone.param_groups().trainable(8):
         assert torch.count_nonzero(p) == 0
-    again = anchor(clip, backbone, mode="ttr", options=AnchorOptions(steps=STEPS), init_options=OPEN_GATE)
+    again = anchor(clip, backbone, mode="ttr", options=AnchorOptions(ttr_steps=STEPS), init_options=OPEN_GATE)
     np.testing.assert_array_equal(again.geometry.T_wc, result.geometry.T_wc)
     np.testing.assert_array_equal(again.alphas, result.alphas)
 
@@ -68,7 +68,7 @@ def test_a_clip_whose_init_is_not_ok_is_not_refined_and_says_why(clip, backbone)
     accel[len(accel) // 2] = np.nan
     bad = dataclasses.replace(clip, imu=ImuSamples(clip.imu.t, clip.imu.gyro, accel))
     seen = []
-    result = anchor(bad, backbone, mode="ttr", options=AnchorOptions(steps=STEPS), on_init=seen.append)
+    result = anchor(bad, backbone, mode="ttr", options=AnchorOptions(ttr_steps=STEPS), on_init=seen.append)
     assert result.mode == "none" and not result.losses and len(result.alphas) == 0
     assert result.status.startswith("rejected") and "NaN" in result.status
     assert seen and seen[0].mode == "none"

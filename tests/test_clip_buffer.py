@@ -43,7 +43,7 @@ def _clips(out):
 
 
 def test_non_overlapping_clips_cover_imu():
-    buf = ClipBuffer(ClipBufferOptions(n=8, stride=2))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=8, stride=2))
     clips = _clips(_run(buf, _events(4.0)))
     assert len(clips) == 80 // 16
     for k, c in enumerate(clips):
@@ -57,7 +57,7 @@ def test_non_overlapping_clips_cover_imu():
 
 
 def test_hop_gives_overlapping_clips():
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1, hop=2))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1, hop=2))
     clips = _clips(_run(buf, _events(1.0)))
     starts = np.array([c.stamps[0] for c in clips])
     np.testing.assert_allclose(np.diff(starts), 0.1, atol=1e-9)
@@ -65,7 +65,7 @@ def test_hop_gives_overlapping_clips():
 
 
 def test_time_offset_applied_at_edge():
-    buf = ClipBuffer(ClipBufferOptions(n=3, stride=1, time_offset=0.013))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=3, stride=1, time_offset=0.013))
     c = _clips(_run(buf, _events(0.5)))[0]
     np.testing.assert_allclose(c.stamps - c.stamps_ns * 1e-9, 0.013, atol=1e-9)
     assert c.imu.t[0] < c.stamps[0] < c.imu.t[1]
@@ -73,14 +73,14 @@ def test_time_offset_applied_at_edge():
 
 def test_images_before_imu_and_late_imu():
     # IMU starts 0.3 s after the first frame: the first clip cannot be covered, later ones are.
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1))
     out = _run(buf, _events(1.0, imu_t0=1.3))
     drops = [o for o in out if isinstance(o, Drop)]
     assert [d.reason for d in drops] == ["imu_missing"] * len(drops) and drops[0].clip == 0
     clips = _clips(out)
     assert clips and all(c.stamps[0] > 1.3 for c in clips)
     # IMU that arrives after all the frames (a late IMU topic) still completes the waiting clips, in order.
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1, imu_timeout=10.0, max_pending=8))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1, imu_timeout=10.0, max_pending=8))
     ev = _events(1.0)
     late = [e for e in ev if e[1] == "img"] + [e for e in ev if e[1] == "imu"]
     clips = _clips(_run(buf, late))
@@ -88,7 +88,7 @@ def test_images_before_imu_and_late_imu():
 
 
 def test_stalled_imu_drops_with_reason_then_recovers():
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1, imu_timeout=0.3))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1, imu_timeout=0.3))
     ev = [e for e in _events(3.0) if not (e[1] == "imu" and 1.5 < e[0] < 2.2)]
     out = _run(buf, ev)
     stalled = [o for o in out if isinstance(o, Drop) and o.reason == "imu_stalled"]
@@ -99,7 +99,7 @@ def test_stalled_imu_drops_with_reason_then_recovers():
 
 
 def test_dropped_frame_restarts_clip():
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=2))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=2))
     out = _run(buf, _events(2.0, skip_frames=(13,)))
     gaps = [o for o in out if isinstance(o, Drop) and o.reason == "frame_gap"]
     assert len(gaps) == 1 and gaps[0].t == pytest.approx(1.7)  # frame 13 (t=1.65) is missing
@@ -108,12 +108,12 @@ def test_dropped_frame_restarts_clip():
         assert not (c.stamps[0] < 1.65 < c.stamps[-1])
     assert clips[-1].stamps[0] >= 1.7
     # an explicit threshold wider than the gap keeps the clip
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=2, max_frame_gap=0.2))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=2, max_frame_gap=0.2))
     assert not [o for o in _run(buf, _events(2.0, skip_frames=(13,))) if isinstance(o, Drop)]
 
 
 def test_out_of_order_and_duplicates_are_dropped_and_counted():
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1))
     ev = _events(1.0)
     imgs = [e for e in ev if e[1] == "img"]
     imus = [e for e in ev if e[1] == "imu"]
@@ -129,21 +129,21 @@ def test_out_of_order_and_duplicates_are_dropped_and_counted():
 
 
 def test_bounded_imu_buffer_and_history():
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1, imu_capacity=50, history=0.1))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1, imu_buffer=50, imu_history=0.1))
     # all IMU first (a burst), then the frames: only the last 50 samples are kept
     ev = _events(1.0)
     ev = [e for e in ev if e[1] == "imu"] + [e for e in ev if e[1] == "img"]
     out = _run(buf, ev)
     assert len(buf._imu) == 50
     assert all(d.reason in ("imu_missing", "imu_stalled") for d in out if isinstance(d, Drop))
-    buf = ClipBuffer(ClipBufferOptions(n=4, stride=1, history=0.1))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1, imu_history=0.1))
     c = _clips(_run(buf, _events(1.0)))[1]
     assert c.imu_history is not None
     assert c.imu_history.t[0] <= c.stamps[0] - 0.1 + 1e-9 and c.imu_history.t[-1] == c.imu.t[-1]
 
 
 def test_nan_samples_pass_through_and_orientation_kept():
-    buf = ClipBuffer(ClipBufferOptions(n=3, stride=1))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=3, stride=1))
     out = []
     for k in range(60):
         t = 0.9 + k * IMU_DT
@@ -163,7 +163,7 @@ def test_options_validated():
 def test_drops_carry_exact_integer_stamps():
     """Drop stamps are the messages' own int ns (float seconds cannot hold ns at epoch magnitudes)."""
     t0 = 1_403_636_579_763_555_584  # EuRoC MH_01's first frame
-    buf = ClipBuffer(ClipBufferOptions(n=2, stride=1, imu_timeout=0.01, time_offset=0.003))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=2, stride=1, imu_timeout=0.01, time_offset=0.003))
     img = np.zeros((2, 2), np.uint8)
     imu_ns = t0 - 3_333_333
     assert not buf.add_imu(imu_ns, [0, 0, 0], [0, 0, 9.81])
@@ -183,7 +183,7 @@ def test_imu_sample_costs_constant_memory_while_a_clip_waits():
     import tracemalloc
 
     n_samples = 100_000
-    buf = ClipBuffer(ClipBufferOptions(n=2, stride=1, imu_capacity=400_000, imu_timeout=60.0))
+    buf = ClipBuffer(ClipBufferOptions(clip_length=2, stride=1, imu_buffer=400_000, imu_timeout=60.0))
     for k in range(n_samples):
         buf.add_imu(k * 5_000_000, [0, 0, 0], [0, 0, 9.81])
     t_frames = (n_samples + 2000) * 5_000_000

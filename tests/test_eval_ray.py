@@ -28,7 +28,7 @@ from vi3_core.eval import distributed, report, runner
 from vi3_ros import cli
 
 REPO = Path(__file__).resolve().parents[1]
-HOP = ["--clips", "sliding", "--hop", "8"]  # 4 overlapping clips of 41 frames: 0-14, 8-22, 16-30, 24-38
+HOP = ["--clips", "sliding", "--param", "hop=8"]  # 4 overlapping clips of 41 frames: 0-14, 8-22, 16-30, 24-38
 
 
 @pytest.fixture(scope="module")
@@ -83,7 +83,7 @@ def test_chained_sequences_on_ray_match_the_serial_run(local_ray, sequence_dir, 
     runs = {}
     for name, extra in (("serial", []), ("ray", ["--ray"])):
         out = tmp_path / name
-        rc, text, err = _eval([sequence_dir, sequence_dir, "--hop", "8", "--json-out", out / "eval.json",
+        rc, text, err = _eval([sequence_dir, sequence_dir, "--param", "hop=8", "--json-out", out / "eval.json",
                                "--export-tum", out / "tum", "--no-progress", *extra], capsys)
         assert rc == 0, err
         runs[name] = (out, text)
@@ -185,7 +185,7 @@ def test_ctrl_c_in_the_terminal_writes_what_finished_marked_partial(local_ray, r
     json_out = tmp_path / "eval.json"
     address = ray_module.get_runtime_context().gcs_address
     proc = subprocess.Popen([sys.executable, "-m", "vi3_ros.cli", "eval", str(sequence_dir), "--independent",
-                             "--clips", "sliding", "--hop", "2", "--json-out", str(json_out), "--ray", address],
+                             "--clips", "sliding", "--param", "hop=2", "--json-out", str(json_out), "--ray", address],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     # the bar counts finished clips and may skip counts when several come back at once
     seen = _read_until(proc, rb" ([1-9]|1[0-3])/14 ", timeout_s=180)

@@ -53,7 +53,7 @@ def make_clip_eval(seed: int, *, ok: bool = True, base_scale: float = 0.4, vi3_s
                                   v1_mag_err=0.1, v1_mag_ratio=1.1)
     return ClipEval(indices=np.arange(10 * seed, 10 * seed + 2 * N, 2), stamps=0.1 * np.arange(N) + seed,
                     status=status.value, reason=init.reason, mode=result.mode, T_gt=T_gt,
-                    down_c1=np.array([0.0, 1.0, 0.0]), result=result, fast=None, columns=columns,
+                    down_c1=np.array([0.0, 1.0, 0.0]), init=init, result=result, fast=None, columns=columns,
                     init_metrics=gt_init)
 
 

@@ -79,8 +79,9 @@ def test_oracle_init_and_short_ttr_report_three_columns(sequence_dir) -> None:
 
     seq = read_asl(sequence_dir)
     idx = runner.clip_indices(len(seq), options=runner.EvalOptions())[1]
-    options = runner.EvalOptions(mode="ttr", init_source="gt", anchor_options=AnchorOptions(steps=2), progress=False)
-    e = runner.evaluate_clip(make_clip(seq, idx), make_backbone("classical"), options=options, indices=idx)
+    options = runner.EvalOptions(mode="ttr", init_source="gt", anchor_options=AnchorOptions(ttr_steps=2),
+                                 progress=False)
+    e = runner.evaluate_clip(make_clip(seq, idx), options.stream(make_backbone("classical"), online=False), indices=idx)
     assert e.ok and set(e.columns) == {"base", "init", "ttr"} and e.fast is not None
     assert set(e.trajectories()) == {"gt", "base", "imu", "init", "vi3"}
     m = e.init_metrics

@@ -236,7 +236,7 @@ def _with_imu(case: InitCase, **changes) -> ImuSamples:
 def test_bad_data_is_rejected_with_a_reason(fault, expect):
     case = make_init_case(0, **NOISY)
     imu, stamps = case.imu, case.stamps
-    options = InitOptions(max_imu_gap_s=0.1)
+    options = InitOptions(max_imu_gap=0.1)
     mid = len(imu.t) // 2
     if fault == "nan":
         accel = imu.accel.copy()
@@ -253,7 +253,7 @@ def test_bad_data_is_rejected_with_a_reason(fault, expect):
     elif fault == "short":
         imu = imu.select(imu.t < stamps[-2])
     elif fault == "sparse":
-        options = InitOptions(max_imu_gap_s=0.1, min_samples_per_interval=5)
+        options = InitOptions(max_imu_gap=0.1, min_samples_per_interval=5)
         imu = imu.select((np.arange(len(imu.t)) % 9 == 0) | (imu.t <= stamps[0]) | (imu.t >= stamps[-1]))
     elif fault == "stamps":
         stamps = stamps.copy()
@@ -266,5 +266,5 @@ def test_a_gap_just_over_the_limit_is_named_with_the_digits_that_show_it():
     """A 0.0500001 s IMU gap against max_imu_gap 0.05: the message never reads "0.050 s ... (max 0.050 s)"."""
     t = np.concatenate([np.arange(5) * 0.01, 0.04 + 0.0500001 + np.arange(5) * 0.01])
     imu = ImuSamples(t, np.zeros((len(t), 3)), np.zeros((len(t), 3)))
-    reason = validate.check_imu(imu, np.array([0.0, 0.05, 0.13]), InitOptions(max_imu_gap_s=0.05))
+    reason = validate.check_imu(imu, np.array([0.0, 0.05, 0.13]), InitOptions(max_imu_gap=0.05))
     assert reason is not None and "IMU gap of 0.0500001 s > max 0.0500000 s" in reason, reason

@@ -1,4 +1,4 @@
-"""``vi3_core.init.metric_fit``: the backbone positions regressed on the IMU with an error model, over one clip and a
+"""``vi3_core.fit.metric_fit``: the backbone positions regressed on the IMU with an error model, over one clip and a
 window, its marginalisation, and the preintegration's bias Jacobians it rests on. Simulated EuRoC-like clips
 (``make_init_case``: EuRoC IMU noise, a 0.1 m/s^2 accelerometer bias, an unknown scale in [0.1, 10])."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from vi3_core import so3
+from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps, marginalise
 from vi3_core.init import InitOptions, initialise
-from vi3_core.init.metric_fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.imu import ImuNoise, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
@@ -136,7 +136,7 @@ def test_marginalising_old_clips_keeps_their_evidence():
     imu, clips, scales, bg, g, T_BC = _window_case(3, 7, REALISTIC)
     fit, full = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
     for drop in (1, 3):
-        prior = fit.marginalise(full, drop)
+        prior = marginalise(fit, full, drop)
         R_f = fit.pre.R[fit.blocks[drop].first]
         _, reduced = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.003 / scales[drop:],
                                    priors=(prior,))

@@ -22,9 +22,9 @@ from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.eval.chained import chained_metrics
 from vi3_core.eval.metrics import gt_camera_poses
 from vi3_core.eval.tum import read_tum
+from vi3_core.fit.position import fit_positions
 from vi3_core.init import initialise_clip
 from vi3_core.init.oracle import oracle_init
-from vi3_core.init.position_fit import fit_positions
 from vi3_core.online import OnlineEstimator, OnlineOptions
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.visual import PoseNoise, noisy_poses
@@ -54,7 +54,7 @@ def _run(seq, *, noise: PoseNoise = NOISE, clips=None, options: OnlineOptions | 
     est = OnlineEstimator(options=options)
     online, own, decisions = [], [], []
     for k, idx in enumerate(clips or sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")):
-        clip = make_clip(seq, idx, with_depth=False, history_s=est.options.max_bridge_s)  # as the node's buffer
+        clip = make_clip(seq, idx, with_depth=False, history_s=est.options.online_max_bridge)  # as the node's buffer
         geo = _geometry(clip, noise, rng)
         if k in broken:
             geo = replace(geo, T_wc=geo.T_wc[:, [1, 0, 2, 3]][:, :, [1, 0, 2, 3]])
@@ -127,7 +127,7 @@ def test_determinism(seq):
 def test_a_gap_longer_than_the_bridge_restarts_and_starts_a_segment(seq):
     clips = [idx for idx in sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
              if not 4.0 <= seq.stamps[idx[0]] - seq.stamps[0] < 6.0]  # 2 s without images
-    est, online, _, decisions = _run(seq, clips=clips, options=OnlineOptions(max_bridge_s=1.0))  # forced
+    est, online, _, decisions = _run(seq, clips=clips, options=OnlineOptions(online_max_bridge=1.0))  # forced
     k = next(i for i, d in enumerate(decisions) if "reset: gap" in d)
     assert decisions[k].startswith("window 1 clips"), decisions[k]  # the window restarted from this clip
     assert "prior: yes" in decisions[k]  # the accelerometer bias survived the restart

@@ -41,7 +41,7 @@ def _chained(seq, noise: PoseNoise, *, seed: int = 0, max_clips: int | None = No
     instrument = GroundTruthPoses(noise=noise, seed=seed)
     est = OnlineEstimator()
     for idx in sample_clips(len(seq), n=8, stride=2, mode="sliding")[:max_clips]:
-        clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=False)
+        clip = make_clip(seq, idx, history_s=est.options.online_max_bridge, with_images=False)
         instrument.bind(clip)
         base = instrument.predict(clip.images, clip.K)
         init = est.initialise(clip, base)

@@ -45,7 +45,7 @@ def seq8(cache_dir, seq4) -> tuple[Path, Path]:
 
 def _replay(seq4, out: Path, realtime: bool = False, **params):
     asl, calib = seq4
-    summary = replay(asl, out, values=resolve({"calib_file": str(calib), **OPEN_GATE, **params}), progress=False,
+    summary = replay(asl, out, settings=resolve({"calib_file": str(calib), **OPEN_GATE, **params}), progress=False,
                      realtime=realtime)
     return summary, read_odometry(summary.output)
 
@@ -135,8 +135,8 @@ def test_the_clip_buffer_keeps_imu_back_to_the_longest_bridge_in_bounded_memory(
     """With ``online`` the buffer hands every clip the IMU of the last ``online_max_bridge`` seconds (the gap back to
     the previous clip the worker processed), from a ring whose size does not grow with the stream."""
     opts = buffer_options(resolve({}))
-    max_bridge = resolve({})["online_max_bridge"]
-    assert opts.history == max_bridge and opts.imu_capacity >= max_bridge * MAX_IMU_RATE_HZ
+    max_bridge = resolve({}).online.online_max_bridge
+    assert opts.imu_history == max_bridge and opts.imu_buffer >= max_bridge * MAX_IMU_RATE_HZ
     buf = ClipBuffer(opts)
     storage = buf._imu._t.nbytes + buf._imu._rows.nbytes
     frame = np.zeros((2, 2), np.uint8)
@@ -147,7 +147,7 @@ def test_the_clip_buffer_keeps_imu_back_to_the_longest_bridge_in_bounded_memory(
         if k % 20 == 0:  # 20 Hz frames
             out += buf.add_image(ns, frame)
         clips += [c for c in out if hasattr(c, "imu_history")]
-        assert len(buf._imu) <= opts.imu_capacity
+        assert len(buf._imu) <= opts.imu_buffer
     assert not buf.counts and len(clips) > 100
     assert buf._imu._t.nbytes + buf._imu._rows.nbytes == storage
     for c in clips:

@@ -107,8 +107,8 @@ OPEN_GATE = {"max_scale_sigma": 10.0}
 
 
 def _run(inp: Path, out: Path, **params) -> tuple[object, dict[str, list]]:
-    values = resolve({"calib_file": str(params.pop("calib", _calib_file(out.parent))), **OPEN_GATE, **params})
-    summary = replay(inp, out, values=values, progress=False)
+    settings = resolve({"calib_file": str(params.pop("calib", _calib_file(out.parent))), **OPEN_GATE, **params})
+    summary = replay(inp, out, settings=settings, progress=False)
     return summary, _read(summary.output)  # OUT, or OUT.partial.mcap when no clip produced a result
 
 

@@ -27,9 +27,9 @@ from msg_adapters.types import jazzy_types
 from vi3_core.dataset.calib import CameraCalib, write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0
 from vi3_core.types import ImuSamples
+from vi3_ros.calibration import FrameMisfit, make_clip
 from vi3_ros.cli import main as vi3_main
 from vi3_ros.clip_buffer import RawClip
-from vi3_ros.pipeline import FrameMisfit, make_clip
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from vi3_core import so3
 from vi3_core.types import Geometry
-from vi3_ros.pipeline import cloud_points
+from vi3_ros.outputs import cloud_points
 
 
 def test_cloud_points_reproject_to_their_pixels():

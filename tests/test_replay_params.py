@@ -17,10 +17,12 @@ from vi3_core.dataset.generate import EUROC_CAM0
 from vi3_core.errors import CalibrationError, DataError
 from vi3_core.init import InitOptions
 from vi3_core.online import OnlineOptions
+from vi3_ros.calibration import Calibration, calib_from_camera_info
 from vi3_ros.clip_buffer import ClipBufferOptions
-from vi3_ros.commands.replay import register, values_from_args
-from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, options, parse_assignment, resolve
-from vi3_ros.pipeline import Calibration, buffer_options, calib_from_camera_info
+from vi3_ros.commands.replay import register, settings_from_args
+from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, parameter_values, parse_assignment, resolve
+from vi3_ros.pipeline import buffer_options
+from vi3_ros.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -45,32 +47,38 @@ def test_checks_name_the_parameter():
         resolve({"stride": 2.5})
     # --param and parameter files only name the parameter; resolve checks and converts every value once
     assert resolve(dict([parse_assignment("publish_tf=true"), parse_assignment("time_offset=-0.01")])) \
-        == {**resolve(), "publish_tf": True, "time_offset": -0.01}
+        == resolve().replace(publish_tf=True, time_offset=-0.01)
     with pytest.raises(DataError, match="stride: expected int, got '2.5'"):
         resolve(dict([parse_assignment("stride=2.5")]))
     with pytest.raises(DataError, match="--param 'strid=2'"):
         parse_assignment("strid=2")
 
 
-def test_option_defaults_come_from_the_option_dataclasses():
-    """The parameters that set option fields default to the dataclasses' own defaults and map back onto them."""
-    values = resolve()
+def test_one_name_per_setting_from_parameter_to_options_field():
+    """Every parameter is the field of the same name in its options dataclass, defaults to that field's default and
+    sets it; the options classes refuse what their own checks refuse, naming the parameter."""
+    settings = resolve()
+    assert settings == Settings()
     for cls in (ClipBufferOptions, OnlineOptions, InitOptions, AnchorOptions):
-        assert options(cls, values) == cls(), cls.__name__
-    assert values["hop"] == 0 and options(ClipBufferOptions, values).hop is None  # 0 stands for None
-    changed = resolve({"clip_length": 5, "hop": 3, "online_window": 4.0, "ttr_steps": 7, "max_imu_gap": 0.02})
-    assert (options(ClipBufferOptions, changed).n, options(ClipBufferOptions, changed).hop) == (5, 3)
-    assert options(OnlineOptions, changed).window_s == 4.0 and options(AnchorOptions, changed).steps == 7
-    assert options(InitOptions, changed).max_imu_gap_s == 0.02
-    assert buffer_options(values).history == values["online_max_bridge"]  # online: IMU history covers the bridge
-    assert buffer_options({**values, "online": False}).history == ClipBufferOptions().history
+        assert getattr(settings, {ClipBufferOptions: "buffer", OnlineOptions: "online", InitOptions: "init",
+                                  AnchorOptions: "anchor"}[cls]) == cls(), cls.__name__
+    assert parameter_values(settings)["hop"] == 0 and settings.buffer.hop is None  # 0 stands for None
+    changed = resolve({"clip_length": 5, "hop": 3, "online_window": 4.0, "ttr_steps": 7, "max_imu_gap": 0.02,
+                       "max_scale_sigma": 0.05, "mode": "ttr"})
+    assert (changed.buffer.clip_length, changed.buffer.hop) == (5, 3)
+    assert changed.online.online_window == 4.0 and changed.anchor.ttr_steps == 7
+    assert changed.init.max_imu_gap == 0.02 and changed.init.max_scale_sigma == 0.05 and changed.stream.mode == "ttr"
+    for p in PARAMS:
+        assert changed.value(p.name) == p.field_value(parameter_values(changed)[p.name])
+    assert buffer_options(settings).imu_history == settings.online.online_max_bridge  # online: history covers it
+    assert buffer_options(resolve({"online": False})).imu_history == ClipBufferOptions().imu_history
 
 
 def test_euroc_config_loads_and_maps_to_buffer_options():
-    values = resolve(load_yaml(REPO / "config" / "euroc.yaml"))
-    assert values["image_topic"] == "/cam0/image_raw" and values["imu_topic"] == "/imu0"
-    opts = buffer_options(values)
-    assert (opts.n, opts.stride, opts.clip_hop) == (8, 2, 16)
+    settings = resolve(load_yaml(REPO / "config" / "euroc.yaml"))
+    assert settings.inputs.image_topic == "/cam0/image_raw" and settings.inputs.imu_topic == "/imu0"
+    opts = buffer_options(settings)
+    assert (opts.clip_length, opts.stride, opts.clip_hop) == (8, 2, 16)
     calib = load_calib(REPO / "config" / "euroc_cam0_sensor.yaml")
     np.testing.assert_allclose(calib.K, EUROC_CAM0.K)
     np.testing.assert_allclose(calib.T_BC, EUROC_CAM0.T_BC)
@@ -96,8 +104,8 @@ def test_replay_cli_precedence(tmp_path):
     f.write_text("/**:\n  ros__parameters:\n    stride: 3\n    mode: ttr\n")
     args = parser.parse_args(["replay", "in", "-o", "out.mcap", "--params-file", str(f), "--param", "stride=4",
                               "--mode", "cond"])
-    values = values_from_args(args)
-    assert values["stride"] == 4 and values["mode"] == "cond" and values["clip_length"] == 8
+    settings = settings_from_args(args)
+    assert settings.buffer.stride == 4 and settings.stream.mode == "cond" and settings.buffer.clip_length == 8
 
 
 def test_calibration_from_camera_info_and_tf():

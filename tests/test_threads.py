@@ -12,15 +12,16 @@ from msg_adapters.types import jazzy_types
 from vi3_core.backbones import make_backbone
 from vi3_core.errors import DataError
 from vi3_core.threads import default_threads
+from vi3_ros.calibration import Calibration
 from vi3_ros.cli import build_parser
 from vi3_ros.params import resolve
-from vi3_ros.pipeline import Calibration, Pipeline
+from vi3_ros.pipeline import Pipeline
 from vi3_ros.replay import McapSink
 from vi3_ros.worker import Worker
 
 
 def test_threads_parameter_is_checked():
-    assert resolve()["threads"] == 0 and resolve({"threads": "3"})["threads"] == 3
+    assert resolve().model.threads == 0 and resolve({"threads": "3"}).model.threads == 3
     with pytest.raises(DataError, match=r"threads: -1 is outside \[0, 1024\]"):
         resolve({"threads": -1})
     with pytest.raises(DataError, match="threads: expected int, got 'two'"):

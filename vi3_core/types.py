@@ -103,6 +103,12 @@ class GroundTruth:
     depth: np.ndarray | None = None
 
 
+#: The default clip: frames per clip and the frame stride within it (the paper's n = 8 at stride 2, 0.7 s of 20 Hz
+#: frames); the node's ``clip_length`` / ``stride`` parameters and the evaluation's clips take them from here.
+CLIP_LENGTH = 8
+CLIP_STRIDE = 2
+
+
 @dataclass(frozen=True)
 class Clip:
     """n synchronised frames and the IMU samples covering them.
@@ -175,6 +181,34 @@ class ImuTrajectory:
     T_wc: np.ndarray
 
 
+@dataclass(frozen=True)
+class ScaleFit:
+    """What the error-model fit (``vi3_core.fit``) found for a clip, typed for the stages after the initialisation.
+
+    lam: 1 / scale, model units per metre (as fitted, also when it is not positive); scale_rel_sigma: relative 1-sigma
+    of the scale (inf: the data do not determine it); v1 [3] m/s: first-frame body velocity in B1; v1_sigma (m/s) and
+    g_sigma (rad): the largest 1-sigma of v1 (any axis) and of gravity's direction; sigma_v: the clip's own visual
+    noise per axis, model units; dof: the clip's residual degrees of freedom; variance_factor: the fit's a-posteriori
+    variance factor (>= 1); converged: Gauss-Newton met its tolerance; window_clips: clips fitted jointly (1: the
+    clip on its own)."""
+
+    lam: float
+    scale_rel_sigma: float
+    v1: np.ndarray
+    v1_sigma: float
+    g_sigma: float
+    sigma_v: float
+    dof: float
+    variance_factor: float
+    converged: bool
+    window_clips: int = 1
+
+    @property
+    def sigma_v_m(self) -> float:
+        """The visual noise in metres (NaN without a positive scale)."""
+        return self.sigma_v / self.lam if self.lam > 0 else float("nan")
+
+
 @dataclass
 class InitResult:
     """GT-free inertial initialisation of one clip (paper Sec. "Inertial state initialization").
@@ -185,7 +219,9 @@ class InitResult:
     truth); ba: [3] accelerometer bias m/s^2 (zeros where not estimated);
     v1: [3] body velocity at the first frame in B1, m/s; gravity_source: which estimate was adopted;
     consensus_deg: angle between the fixed points of the seeds (Eq. guard), NaN with a single seed;
-    status/reason: see ``InitStatus``; target: the metric IMU trajectory (None unless status is ok).
+    status/reason: see ``InitStatus``; target: the metric IMU trajectory (None unless status is ok); fit: the
+    error-model fit behind the scale (None for the paper's solvers and before a fit ran); diagnostics: values for
+    reports only (no later stage reads them).
     """
 
     status: InitStatus
@@ -200,6 +236,7 @@ class InitResult:
     consensus_deg: float = float("nan")
     iterations: int = 0
     target: ImuTrajectory | None = None
+    fit: ScaleFit | None = None
     diagnostics: dict = field(default_factory=dict)
 
     @property

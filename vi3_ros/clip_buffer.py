@@ -33,42 +33,42 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vi3_core.errors import DataError
-from vi3_core.types import ImuSamples, window_bounds
+from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, ImuSamples, window_bounds
 
 
 @dataclass(frozen=True)
 class ClipBufferOptions:
-    """n: frames per clip; stride: take every stride-th input frame; hop: input frames between clip starts (None:
-    n * stride, non-overlapping); max_frame_gap: s, larger gap between consecutive input frames restarts collection
-    (<= 0: automatic, 1.5 x the median of the recent frame intervals); time_offset: s, t_imu = t_cam + time_offset;
-    imu_margin: IMU samples needed beyond the last frame; imu_capacity: bounded IMU buffer (samples);
-    imu_timeout: s of camera time a complete clip waits for IMU before it is dropped; history: s of IMU kept before
-    the clip's first frame in ``RawClip.imu_history`` (long-window gravity seed; 0 = none); max_pending: complete
-    clips waiting for IMU."""
+    """clip_length: frames per clip (n); stride: take every stride-th input frame; hop: input frames between clip
+    starts (None: clip_length * stride, non-overlapping); max_frame_gap: s, larger gap between consecutive input frames
+    restarts collection (<= 0: automatic, 1.5 x the median of the recent frame intervals); time_offset: s, t_imu =
+    t_cam + time_offset; imu_margin: IMU samples needed beyond the last frame; imu_buffer: bounded IMU buffer
+    (samples); imu_timeout: s of camera time a complete clip waits for IMU before it is dropped; imu_history: s of IMU
+    kept before the clip's first frame in ``RawClip.imu_history`` (long-window gravity seed; 0 = none); max_pending:
+    complete clips waiting for IMU."""
 
-    n: int = 8
-    stride: int = 2
+    clip_length: int = CLIP_LENGTH
+    stride: int = CLIP_STRIDE
     hop: int | None = None
     max_frame_gap: float = 0.0
     time_offset: float = 0.0
     imu_margin: int = 1
-    imu_capacity: int = 4000
+    imu_buffer: int = 4000
     imu_timeout: float = 0.5
-    history: float = 0.0
+    imu_history: float = 0.0
     max_pending: int = 4
 
     def __post_init__(self) -> None:
-        checks = {"n >= 2": self.n >= 2, "stride >= 1": self.stride >= 1,
+        checks = {"clip_length >= 2": self.clip_length >= 2, "stride >= 1": self.stride >= 1,
                   "hop >= 1": self.hop is None or self.hop >= 1, "imu_margin >= 1": self.imu_margin >= 1,
-                  "imu_capacity >= 16": self.imu_capacity >= 16, "imu_timeout > 0": self.imu_timeout > 0,
-                  "history >= 0": self.history >= 0, "max_pending >= 1": self.max_pending >= 1}
+                  "imu_buffer >= 16": self.imu_buffer >= 16, "imu_timeout > 0": self.imu_timeout > 0,
+                  "imu_history >= 0": self.imu_history >= 0, "max_pending >= 1": self.max_pending >= 1}
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
             raise DataError(f"ClipBufferOptions: {', '.join(bad)} violated by {self}")
 
     @property
     def clip_hop(self) -> int:
-        return self.hop if self.hop is not None else self.n * self.stride
+        return self.hop if self.hop is not None else self.clip_length * self.stride
 
 
 @dataclass(frozen=True)
@@ -78,7 +78,8 @@ class RawClip:
     index: running clip number (0, 1, ...); stamps: [n] float64 s in IMU time; stamps_ns: [n] the frames' original
     message stamps (camera time, int ns, for the output headers); images: the n raw (distorted) frames as given;
     imu: samples covering [stamps[0], stamps[-1]] plus ``imu_margin`` samples each side; imu_history: samples from
-    the last one at or before ``history`` s before stamps[0] to the end of ``imu`` (None when history is 0).
+    the last one at or before ``ClipBufferOptions.imu_history`` s before stamps[0] to the end of ``imu`` (None when that
+    is 0).
     """
 
     index: int
@@ -165,7 +166,7 @@ class ClipBuffer:
 
     def __init__(self, options: ClipBufferOptions | None = None) -> None:
         self.options = options or ClipBufferOptions()
-        self._imu = _ImuRing(self.options.imu_capacity)
+        self._imu = _ImuRing(self.options.imu_buffer)
         self._last_imu_ns: int | None = None
         self._open: list[_Open] = []
         self._pending: collections.deque[RawClip] = collections.deque()
@@ -222,7 +223,7 @@ class ClipBuffer:
                 clip.stamps.append(t)
                 clip.stamps_ns.append(t_cam_ns)
                 clip.images.append(image)
-                if len(clip.stamps) == o.n:
+                if len(clip.stamps) == o.clip_length:
                     done.append(clip)
         for clip in done:
             self._open.remove(clip)
@@ -305,8 +306,8 @@ class ClipBuffer:
                                            f"clip's first frame at {t0:.6f} s (needs a sample at or before it)"))
                 continue
             hist = None
-            if self.options.history > 0:
-                h0 = min(i0, max(int(np.searchsorted(t, t0 - self.options.history, side="right")) - 1, 0))
+            if self.options.imu_history > 0:
+                h0 = min(i0, max(int(np.searchsorted(t, t0 - self.options.imu_history, side="right")) - 1, 0))
                 hist = self._imu.samples(h0, i1)
             self.clips += 1
             out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images, self._imu.samples(i0, i1), hist))

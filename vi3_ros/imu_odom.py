@@ -26,6 +26,7 @@ from vi3_core.init.options import InitOptions
 from vi3_core.online import OdomState
 from vi3_core.online.propagator import ImuPropagator, PropagatedStates, PropagationSigmas, propagation_sigmas
 from vi3_core.types import ImuSamples
+from vi3_ros.settings import Settings
 
 
 def sigmas(states: PropagatedStates, state: OdomState, options: InitOptions) -> PropagationSigmas:
@@ -49,16 +50,17 @@ def covariances(s: PropagationSigmas, options: InitOptions, sample_dt: float) ->
 
 class ImuOdometry:
     """The IMU-rate odometry of one stream; thread-safe (``restart`` on the worker thread, ``add`` on the input
-    thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``values`` its parameters. Lock order: ``restart``
+    thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``settings`` its settings. Lock order: ``restart``
     calls ``imu_since`` (which takes the Pipeline's lock) under this object's lock, so the Pipeline must not call
     into this object while it holds its own."""
 
-    def __init__(self, values: dict[str, Any], *, init_options: InitOptions, max_tau_s: float, types: MessageTypes,
-                 publish: Callable[[str, Any, int], None]) -> None:
-        self.period_ns = round(1e9 / values["imu_odom_rate"])
-        self.max_sigma = float(values["imu_odom_max_sigma"])
-        self.frame, self.child = values["odom_frame"], values["base_frame"]
-        self.options, self.max_tau_s = init_options, max_tau_s
+    def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None]) -> None:
+        self.period_ns = round(1e9 / settings.outputs.imu_odom_rate)
+        self.max_sigma = float(settings.outputs.imu_odom_max_sigma)
+        self.frame, self.child = settings.frames.odom_frame, settings.frames.base_frame
+        # dead reckoning is trusted for as long as the window bridges a gap between clips
+        self.options, self.max_tau_s = settings.init, settings.online.online_max_bridge
+
         self.types, self._publish = types, publish
         self._lock = threading.Lock()
         self._prop: ImuPropagator | None = None
@@ -78,7 +80,7 @@ class ImuOdometry:
     def restart(self, state: OdomState, imu_since: Callable[[float], ImuSamples | None]) -> None:
         """Start over from a newly chained ``state``, catching up through ``imu_since(t)`` (the samples recorded from
         at or before t s to the newest; None: none), read while no sample can slip in between."""
-        prop = ImuPropagator(state, gravity_norm=self.options.gravity_norm, max_gap_s=self.options.max_imu_gap_s,
+        prop = ImuPropagator(state, gravity_norm=self.options.gravity_norm, max_gap_s=self.options.max_imu_gap,
                              max_tau_s=self.max_tau_s)
         with self._lock:
             imu = imu_since(prop.t_c)

@@ -1,7 +1,7 @@
 """``vi3_node``: the thin rclpy shell around ``vi3_ros.pipeline``.
 
 Only wiring lives here: parameters declared with descriptors from ``vi3_ros.params``, subscriptions with the
-sensor-data QoS (best effort), reliable publishers for ``vi3_ros.pipeline.OUTPUTS``, a timer for the Pipeline's
+sensor-data QoS (best effort), reliable publishers for ``vi3_ros.outputs.OUTPUTS``, a timer for the Pipeline's
 periodic diagnostics, and callbacks that hand messages to the Pipeline (images and IMU converted with
 ``msg_adapters``; CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does). A message that
 cannot be decoded is dropped and counted by the Pipeline (``drop_input``) like every other drop.
@@ -36,8 +36,9 @@ from msg_adapters.types import MessageTypes
 from vi3_core.errors import DataError, Vi3Error
 from vi3_ros import interrupts
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
+from vi3_ros.outputs import OUTPUTS
 from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve
-from vi3_ros.pipeline import OUTPUTS, Pipeline, make_pipeline
+from vi3_ros.pipeline import Pipeline, make_pipeline
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -87,31 +88,33 @@ class Vi3Node(Node):
         super().__init__(NODE_NAME, **node_kwargs)
         for p in PARAMS:
             self.declare_parameter(p.name, p.default, descriptor(p))
-        self.values = resolve({p.name: self.get_parameter(p.name).value for p in PARAMS})
+        self.settings = resolve({p.name: self.get_parameter(p.name).value for p in PARAMS})
         self.types = types = MessageTypes.from_rclpy()
         self.sink = _PublisherSink(self, types)
-        self.pipeline: Pipeline = make_pipeline(self.values, sink=self.sink, types=types)
-        v = self.values
-        self.image_topic = self.resolve_topic_name(v["image_topic"])
+        self.pipeline: Pipeline = make_pipeline(self.settings, sink=self.sink, types=types)
+        inputs = self.settings.inputs
+        self.image_topic = self.resolve_topic_name(inputs.image_topic)
         self._image_sub = None
         self._image_timer = None
         self._waiting_logged = False
-        if v["image_transport"] == "auto":
+        if inputs.image_transport == "auto":
             self._image_timer = self.create_timer(IMAGE_TYPE_POLL_S, self._learn_image_type)
             self._learn_image_type()
         else:
-            self._subscribe_images(IMAGE_TRANSPORTS[v["image_transport"]][0])
-        self.create_subscription(types.get("sensor_msgs/msg/Imu"), v["imu_topic"], self._on_imu,
+            self._subscribe_images(IMAGE_TRANSPORTS[inputs.image_transport][0])
+        self.create_subscription(types.get("sensor_msgs/msg/Imu"), inputs.imu_topic, self._on_imu,
                                  qos_profile_sensor_data)
-        if v["camera_info_topic"]:
-            self.create_subscription(types.get("sensor_msgs/msg/CameraInfo"), v["camera_info_topic"],
+        if inputs.camera_info_topic:
+            self.create_subscription(types.get("sensor_msgs/msg/CameraInfo"), inputs.camera_info_topic,
                                      self._on_camera_info, qos_profile_sensor_data)
-        if v["use_tf_static"]:
+        if inputs.use_tf_static:
             self.create_subscription(types.get("tf2_msgs/msg/TFMessage"), "/tf_static", self._on_tf_static,
                                      TF_STATIC)
-        self.create_timer(v["diagnostics_period"], self._on_timer)
-        self.get_logger().info(f"vi3_node: backbone {v['backbone']} on {v['device']}, mode {v['mode']}, "
-                               f"images {self.image_topic} ({v['image_transport']}), IMU {v['imu_topic']}")
+        self.create_timer(self.settings.outputs.diagnostics_period, self._on_timer)
+        model = self.settings.model
+        self.get_logger().info(f"vi3_node: backbone {model.backbone} on {model.device}, mode "
+                               f"{self.settings.stream.mode}, images {self.image_topic} ({inputs.image_transport}), "
+                               f"IMU {inputs.imu_topic}")
 
     # ---- image subscription ----------------------------------------------------------------------------------
 

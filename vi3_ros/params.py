@@ -1,14 +1,13 @@
-"""One declaration of every parameter of the node and the replay tool: name, default (whose Python type is the
-parameter's type), description, and range or choices.
+"""One declaration of every parameter of the node and the replay tool: name, description, and range or choices.
 
-Parameters that set a field of an options dataclass (``ClipBufferOptions``, ``OnlineOptions``, ``InitOptions``,
-``AnchorOptions``) take their default from that field, and ``options(cls, values)`` builds the dataclass from
-parameter values, so the dataclass stays the one source of each default. Choices of ``backbone`` and ``mode`` are
-the backbone registry's and the anchoring modes.
-
-The node declares each as a ROS parameter with a ``ParameterDescriptor`` built from this table; replay fills the
-same values from ``--param NAME=VALUE`` and from a ROS 2 parameter YAML (``config/euroc.yaml``); ``resolve`` is the
-one place where values are checked; ``docs/node.md``'s table is ``markdown_table()``'s output.
+Every parameter is a field of the same name in one options dataclass (``vi3_ros.settings``' groups, the clip buffer's,
+and the core's ``StreamOptions``, ``OnlineOptions``, ``InitOptions``, ``AnchorOptions``), whose default is the
+parameter's default and whose Python type is its type: one name per setting, in the ROS parameter table, in
+``vi3 replay|eval|bench --param NAME=VALUE``, in a ROS 2 parameter YAML (``--params-file``, ``config/euroc.yaml``), in
+the code and in every message. ``resolve`` is the one place where values are checked and turns them into typed
+``Settings``; the node declares each as a ROS parameter with a ``ParameterDescriptor`` built from this table;
+``docs/node.md``'s table is ``markdown_table()``'s output. Choices of ``backbone`` and ``mode`` are the backbone
+registry's and the anchoring modes.
 """
 
 from __future__ import annotations
@@ -16,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import yaml
 
@@ -25,25 +24,31 @@ from vi3_core.backbones import BACKBONES
 from vi3_core.errors import DataError
 from vi3_core.init.options import SCALE_SOLVERS, InitOptions
 from vi3_core.online.options import OnlineOptions
+from vi3_core.online.stream import StreamOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
+from vi3_ros.settings import GROUPS, FrameOptions, InputOptions, ModelOptions, OutputOptions, Settings
 
 NODE_NAME = "vi3_node"
-Options = TypeVar("Options")
 
 
 @dataclass(frozen=True)
 class Param:
-    """name: ROS parameter name; default: its value and type (bool, int, float, str); range: inclusive (lo, hi)
-    for numbers; choices: allowed strings; option: (options dataclass, field) that the value sets; none_as: the
-    parameter value that stands for the field's None (e.g. ``hop`` 0)."""
+    """name: the ROS parameter's name, also the field of ``group`` (an options dataclass) that it sets; range:
+    inclusive (lo, hi) for numbers; choices: allowed strings; none_as: the parameter value that stands for the field's
+    None (e.g. ``hop`` 0)."""
 
     name: str
-    default: bool | int | float | str
+    group: type
     description: str
     range: tuple[float, float] | None = None
     choices: tuple[str, ...] = ()
-    option: tuple[type, str] | None = None
     none_as: bool | int | float | str | None = None
+
+    @property
+    def default(self) -> bool | int | float | str:
+        """The field's default (``none_as`` where it is None): the parameter's default, whose type is its type."""
+        value = {f.name: f.default for f in dataclasses.fields(self.group)}[self.name]
+        return self.none_as if value is None else value
 
     @property
     def type(self) -> type:
@@ -72,152 +77,163 @@ class Param:
                 raise DataError(f"parameter {self.name}: {value!r} is not one of {', '.join(self.choices)}")
         return value
 
-
-def _option(name: str, cls: type, field: str, description: str, *, range: tuple[float, float] | None = None,
-            choices: tuple[str, ...] = (), none_as: bool | int | float | str | None = None) -> Param:
-    """The parameter that sets ``cls.field``; its default is the field's default (``none_as`` where that is None)."""
-    default = {f.name: f.default for f in dataclasses.fields(cls)}[field]
-    return Param(name, none_as if default is None else default, description, range=range, choices=choices,
-                 option=(cls, field), none_as=none_as)
+    def field_value(self, value: Any) -> Any:
+        """The options field's value for the (checked) parameter value: None where it is ``none_as``."""
+        return None if self.none_as is not None and value == self.none_as else value
 
 
 PARAMS: tuple[Param, ...] = (
     # inputs
-    Param("image_topic", "/cam0/image_raw", "camera images (sensor_msgs/Image, mono8/rgb8/bgr8..., or "
+    Param("image_topic", InputOptions, "camera images (sensor_msgs/Image, mono8/rgb8/bgr8..., or "
           "sensor_msgs/CompressedImage, JPEG/PNG: see image_transport)"),
-    Param("image_transport", "auto", "message type on image_topic: raw (sensor_msgs/Image), compressed "
+    Param("image_transport", InputOptions, "message type on image_topic: raw (sensor_msgs/Image), compressed "
           "(sensor_msgs/CompressedImage), auto (node: the type its publishers have, learnt from the ROS graph; "
           "replay: the recording's)", choices=("auto", "raw", "compressed")),
-    Param("imu_topic", "/imu0", "IMU samples (sensor_msgs/Imu)"),
-    Param("camera_info_topic", "", "sensor_msgs/CameraInfo with the intrinsics; empty: use calib_file"),
-    Param("calib_file", "", "EuRoC cam0/sensor.yaml or Kalibr camchain-imucam.yaml: intrinsics, distortion and "
-          "T_BC (used for whatever camera_info_topic / tf_static do not provide)"),
-    Param("use_tf_static", False, "take the camera pose in the IMU frame from /tf_static (imu_frame -> "
+    Param("imu_topic", InputOptions, "IMU samples (sensor_msgs/Imu)"),
+    Param("camera_info_topic", InputOptions, "sensor_msgs/CameraInfo with the intrinsics; empty: use calib_file"),
+    Param("calib_file", InputOptions, "EuRoC cam0/sensor.yaml or Kalibr camchain-imucam.yaml: intrinsics, distortion "
+          "and T_BC (used for whatever camera_info_topic / tf_static do not provide)"),
+    Param("use_tf_static", InputOptions, "take the camera pose in the IMU frame from /tf_static (imu_frame -> "
           "camera_frame) instead of calib_file"),
     # frames
-    Param("clip_frame", "vi3_clip", "frame of ~/poses and ~/points: the clip's first camera (OpenCV optical axes)"),
-    Param("camera_frame", "cam0", "optical frame of the camera (~/depth headers, TF child lookups)"),
-    Param("imu_frame", "imu0", "IMU (body) frame, parent of camera_frame in /tf_static"),
-    Param("publish_tf", False, "publish camera_frame -> clip_frame (the clip frame seen from the clip's last "
+    Param("clip_frame", FrameOptions, "frame of ~/poses and ~/points: the clip's first camera (OpenCV optical axes)"),
+    Param("camera_frame", FrameOptions, "optical frame of the camera (~/depth headers, TF child lookups)"),
+    Param("imu_frame", FrameOptions, "IMU (body) frame, parent of camera_frame in /tf_static"),
+    Param("publish_tf", FrameOptions, "publish camera_frame -> clip_frame (the clip frame seen from the clip's last "
           "camera) so that the outputs hang off the live TF tree"),
     # online state across clips and the odom trajectory (vi3_core.online)
-    Param("online", True, "carry the metric state (gravity, gyro bias, velocity) across clips as priors of each "
-          "clip's initialisation, and chain the clips into one odom trajectory; false: every clip on its own (paper)"),
-    Param("odom_frame", "odom", "frame of ~/odom and ~/path: continuous, gravity-aligned, z up (REP-105)"),
-    Param("base_frame", "base_link", "child frame of ~/odom and of the odom TF: the IMU (body) frame"),
-    Param("publish_odom_tf", False, "publish odom_frame -> base_frame on /tf at each clip's last frame (online only)"),
-    Param("outputs_in_odom", False, "express ~/poses and ~/points in odom_frame instead of clip_frame (online only; "
-          "a clip that is not chained keeps clip_frame)"),
-    Param("imu_odom_rate", 200.0, "Hz; ~/odom/imu: the last chained state propagated with every IMU sample, published "
-          "at most this often (every sample at the IMU's rate or above); 0: off (online only)", range=(0.0, 10000.0)),
-    Param("imu_odom_max_sigma", 1.0, "m; ~/odom/imu stops, until the next chained clip, once its horizontal position "
-          "1-sigma since the last chained frame exceeds this (a dead-reckoned pose a flight stack should not use); 0: "
-          "no limit", range=(0.0, 1e6)),
-    Param("path_max_poses", 5000, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
-    _option("online_window", OnlineOptions, "window_s", "s; clips starting within this of the newest are fitted "
+    Param("online", StreamOptions, "carry the metric state (gravity, gyro bias, velocity) across clips as priors of "
+          "each clip's initialisation, and chain the clips into one odom trajectory; false: every clip on its own "
+          "(paper)"),
+    Param("odom_frame", FrameOptions, "frame of ~/odom and ~/path: continuous, gravity-aligned, z up (REP-105)"),
+    Param("base_frame", FrameOptions, "child frame of ~/odom and of the odom TF: the IMU (body) frame"),
+    Param("publish_odom_tf", FrameOptions, "publish odom_frame -> base_frame on /tf at each clip's last frame (online "
+          "only)"),
+    Param("outputs_in_odom", FrameOptions, "express ~/poses and ~/points in odom_frame instead of clip_frame (online "
+          "only; a clip that is not chained keeps clip_frame)"),
+    Param("imu_odom_rate", OutputOptions, "Hz; ~/odom/imu: the last chained state propagated with every IMU sample, "
+          "published at most this often (every sample at the IMU's rate or above); 0: off (online only)",
+          range=(0.0, 10000.0)),
+    Param("imu_odom_max_sigma", OutputOptions, "m; ~/odom/imu stops, until the next chained clip, once its horizontal "
+          "position 1-sigma since the last chained frame exceeds this (a dead-reckoned pose a flight stack should not "
+          "use); 0: no limit", range=(0.0, 1000000.0)),
+    Param("path_max_poses", OutputOptions, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
+    Param("online_window", OnlineOptions, "s; clips starting within this of the newest are fitted "
             "jointly (gravity and biases shared, velocities tied through the IMU, one scale per clip); older ones are "
             "marginalised into a prior", range=(0.5, 60.0)),
-    _option("online_max_clips", OnlineOptions, "max_clips", "at most this many clips in the window", range=(1, 100)),
-    _option("online_max_bridge", OnlineOptions, "max_bridge_s", "s; the longest gap between clips the IMU bridges "
+    Param("online_max_clips", OnlineOptions, "at most this many clips in the window", range=(2, 100)),
+    Param("online_max_bridge", OnlineOptions, "s; the longest gap between clips the IMU bridges "
             "(clips a busy worker dropped); longer, or IMU missing: the window restarts", range=(0.1, 3600.0)),
-    _option("online_max_bridge_sigma", OnlineOptions, "max_bridge_sigma_m", "m; a clip placed through a bridge whose "
+    Param("online_max_bridge_sigma", OnlineOptions, "m; a clip placed through a bridge whose "
             "position 1-sigma exceeds this starts a new odom segment", range=(0.001, 1000.0)),
-    _option("online_consistency_p", OnlineOptions, "consistency_p", "a clip whose residual in the window has a "
+    Param("online_consistency_p", OnlineOptions, "a clip whose residual in the window has a "
             "chi-square tail probability below this is inconsistent (rejected)", range=(1e-12, 0.5)),
-    _option("online_max_rejects", OnlineOptions, "max_rejects", "inconsistent clips in a row that restart the "
+    Param("online_max_rejects", OnlineOptions, "inconsistent clips in a row that restart the "
             "window", range=(1, 1000)),
-    _option("online_bg_window", OnlineOptions, "bg_window_s", "s; the gyro-bias prior is the median of the clips' "
+    Param("online_bg_window", OnlineOptions, "s; the gyro-bias prior is the median of the clips' "
             "own estimates over this long", range=(0.1, 3600.0)),
     # clip buffer
-    _option("clip_length", ClipBufferOptions, "n", "frames per clip (n)", range=(2, 64)),
-    _option("stride", ClipBufferOptions, "stride", "use every stride-th input frame", range=(1, 100)),
-    _option("hop", ClipBufferOptions, "hop", "input frames between clip starts; 0: clip_length * stride "
+    Param("clip_length", ClipBufferOptions, "frames per clip (n)", range=(2, 64)),
+    Param("stride", ClipBufferOptions, "use every stride-th input frame", range=(1, 100)),
+    Param("hop", ClipBufferOptions, "input frames between clip starts; 0: clip_length * stride "
             "(non-overlapping)", range=(0, 10000), none_as=0),
-    _option("max_frame_gap", ClipBufferOptions, "max_frame_gap", "s; a larger gap between consecutive frames "
+    Param("max_frame_gap", ClipBufferOptions, "s; a larger gap between consecutive frames "
             "restarts the clip; 0: automatic (1.5 x the median recent frame interval, so one dropped frame restarts)",
             range=(0.0, 60.0)),
-    _option("time_offset", ClipBufferOptions, "time_offset", "s; camera-IMU time offset, t_imu = t_cam + "
+    Param("time_offset", ClipBufferOptions, "s; camera-IMU time offset, t_imu = t_cam + "
             "time_offset (Kalibr timeshift_cam_imu)", range=(-1.0, 1.0)),
-    _option("imu_buffer", ClipBufferOptions, "imu_capacity", "IMU samples kept (bounded buffer)",
+    Param("imu_buffer", ClipBufferOptions, "IMU samples kept (bounded buffer)",
             range=(16, 1_000_000)),
-    _option("imu_timeout", ClipBufferOptions, "imu_timeout", "s of camera time a complete clip waits for IMU before "
+    Param("imu_timeout", ClipBufferOptions, "s of camera time a complete clip waits for IMU before "
             "it is dropped (imu_stalled)", range=(0.001, 60.0)),
-    _option("imu_history", ClipBufferOptions, "history", "s of IMU before the clip kept for the long-window gravity "
+    Param("imu_history", ClipBufferOptions, "s of IMU before the clip kept for the long-window gravity "
             "seed; 0: none", range=(0.0, 60.0)),
-    _option("max_pending", ClipBufferOptions, "max_pending", "complete clips waiting for IMU before the oldest is "
+    Param("max_pending", ClipBufferOptions, "complete clips waiting for IMU before the oldest is "
             "dropped", range=(1, 1000)),
     # model and anchoring
-    Param("backbone", "classical", "3D foundation model", choices=tuple(BACKBONES)),
-    Param("device", "cpu", "torch device of the backbone (cpu, cuda, cuda:1...)"),
-    Param("checkpoint", "", "local checkpoint path or Hugging Face id; empty: the backbone's default"),
-    Param("threads", 0, "torch intra-op threads of the process (backbone forward, cond/ttr steps) and the classical "
-          "backbone's plane-sweep threads, set once at start; 0: min(2, CPUs this process may use)",
+    Param("backbone", ModelOptions, "3D foundation model", choices=tuple(BACKBONES)),
+    Param("device", ModelOptions, "torch device of the backbone (cpu, cuda, cuda:1...)"),
+    Param("checkpoint", ModelOptions, "local checkpoint path or Hugging Face id; empty: the backbone's default"),
+    Param("threads", ModelOptions, "torch intra-op threads of the process (backbone forward, cond/ttr steps) and the "
+          "classical backbone's plane-sweep threads, set once at start; 0: min(2, CPUs this process may use)",
           range=(0, 1024)),
-    Param("mode", "init", "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
+    Param("mode", StreamOptions, "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
           "(test-time refinement)", choices=MODES),
-    Param("backbone_delay", 0.0, "s added to every clip's processing before the backbone, to emulate a slower model "
-          "(testing: what a busy worker drops, how the odometry chains across the gaps)", range=(0.0, 3600.0)),
-    _option("ttr_steps", AnchorOptions, "steps", "TTR optimisation steps", range=(1, 100000)),
-    _option("scale_solver", InitOptions, "scale_solver", "eiv: backbone positions regressed on the IMU with an error "
+    Param("backbone_delay", ModelOptions, "s added to every clip's processing before the backbone, to emulate a "
+          "slower model (testing: what a busy worker drops, how the odometry chains across the gaps)",
+          range=(0.0, 3600.0)),
+    Param("ttr_steps", AnchorOptions, "TTR optimisation steps", range=(1, 100000)),
+    Param("scale_solver", InitOptions, "eiv: backbone positions regressed on the IMU with an error "
             "model, a scale sigma per clip; tls / ols: the paper's Eq. S (no error model; independent clips only)",
             choices=SCALE_SOLVERS),
-    _option("max_scale_sigma", InitOptions, "max_scale_rel_sigma", "a scale whose relative 1-sigma exceeds this is "
+    Param("max_scale_sigma", InitOptions, "a scale whose relative 1-sigma exceeds this is "
             "not claimed (unobservable)", range=(0.001, 10.0)),
-    _option("max_rotation_error", InitOptions, "max_rotation_deg", "deg; a clip whose backbone relative rotations "
+    Param("max_rotation_error", InitOptions, "deg; a clip whose backbone relative rotations "
             "disagree with the bias-corrected gyro by more is a backbone failure (rejected)", range=(0.01, 180.0)),
-    _option("accel_noise_density", InitOptions, "accel_noise_density", "m/s^2/sqrt(Hz); accelerometer noise of the "
+    Param("accel_noise_density", InitOptions, "m/s^2/sqrt(Hz); accelerometer noise of the "
             "error model (EuRoC's datasheet x 10)", range=(0.0, 10.0)),
-    _option("gyro_noise_density", InitOptions, "gyro_noise_density", "rad/s/sqrt(Hz); gyro noise of the error model "
+    Param("gyro_noise_density", InitOptions, "rad/s/sqrt(Hz); gyro noise of the error model "
             "(EuRoC's datasheet x 5)", range=(0.0, 10.0)),
-    _option("gyro_scale_error", InitOptions, "gyro_scale_error", "relative error of the integrated rotation in the "
+    Param("gyro_scale_error", InitOptions, "relative error of the integrated rotation in the "
             "error model", range=(0.0, 1.0)),
-    _option("accel_bias_sigma", InitOptions, "accel_bias_sigma", "m/s^2; prior 1-sigma of the accelerometer bias",
+    Param("accel_bias_sigma", InitOptions, "m/s^2; prior 1-sigma of the accelerometer bias",
             range=(1e-6, 10.0)),
-    _option("accel_bias_walk", InitOptions, "accel_bias_walk", "m/s^2/sqrt(s); accelerometer bias random walk",
+    Param("accel_bias_walk", InitOptions, "m/s^2/sqrt(s); accelerometer bias random walk",
             range=(0.0, 10.0)),
-    _option("gyro_bias_walk", InitOptions, "gyro_bias_walk", "rad/s/sqrt(s); gyro bias random walk",
+    Param("gyro_bias_walk", InitOptions, "rad/s/sqrt(s); gyro bias random walk",
             range=(0.0, 10.0)),
-    _option("scale_rel_floor", InitOptions, "scale_rel_floor", "relative scale error the error model does not see "
+    Param("scale_rel_floor", InitOptions, "relative scale error the error model does not see "
             "(added to every sigma)", range=(0.0, 1.0)),
-    _option("min_accel_rms", InitOptions, "min_accel_rms", "m/s^2; below it scale is unobservable and the clip is "
+    Param("min_accel_rms", InitOptions, "m/s^2; below it scale is unobservable and the clip is "
             "flagged", range=(0.0, 100.0)),
-    _option("max_imu_gap", InitOptions, "max_imu_gap_s", "s; a larger gap between IMU samples inside a clip rejects "
+    Param("max_imu_gap", InitOptions, "s; a larger gap between IMU samples inside a clip rejects "
             "it", range=(0.0, 10.0)),
     # outputs
-    Param("depth_frames", "last", "~/depth for every clip frame (all) or only the last", choices=("last", "all")),
-    Param("points_frames", "last", "~/points from every clip frame (all) or only the last", choices=("last", "all")),
-    Param("points_stride", 2, "~/points keeps every k-th depth pixel in each direction", range=(1, 64)),
-    Param("points_conf_quantile", 0.3, "~/points drops pixels whose confidence is below this quantile of the "
+    Param("depth_frames", OutputOptions, "~/depth for every clip frame (all) or only the last",
+          choices=("last", "all")),
+    Param("points_frames", OutputOptions, "~/points from every clip frame (all) or only the last",
+          choices=("last", "all")),
+    Param("points_stride", OutputOptions, "~/points keeps every k-th depth pixel in each direction", range=(1, 64)),
+    Param("points_conf_quantile", OutputOptions, "~/points drops pixels whose confidence is below this quantile of the "
           "clip's confidences (backbone-independent; 0 keeps all)", range=(0.0, 0.99)),
-    Param("points_max_depth", 20.0, "m; ~/points drops pixels farther than this", range=(0.1, 1000.0)),
-    Param("diagnostics_period", 1.0, "s between /diagnostics summaries, which carry the dropped input messages "
-          "counted by reason (node: timer; replay: bag time)", range=(0.05, 3600.0)),
+    Param("points_max_depth", OutputOptions, "m; ~/points drops pixels farther than this", range=(0.1, 1000.0)),
+    Param("diagnostics_period", OutputOptions, "s between /diagnostics summaries, which carry the dropped input "
+          "messages counted by reason (node: timer; replay: bag time)", range=(0.05, 3600.0)),
 )
 
+
 BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
+_CLASS_ATTR = {cls: attr for attr, cls in GROUPS.items()}
 
 
 def defaults() -> dict[str, Any]:
-    """Every parameter at its default."""
+    """Every parameter at its default (parameter values, e.g. ``hop`` 0)."""
     return {p.name: p.default for p in PARAMS}
 
 
-def resolve(overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Defaults updated with ``overrides``, each checked (``Param.check``); an unknown name is a DataError naming it."""
-    values = defaults()
+def resolve(overrides: dict[str, Any] | None = None, base: Settings | None = None) -> Settings:
+    """``base`` (default: every default) with ``overrides`` (parameter name -> value), each checked
+    (``Param.check``); an unknown name, a bad value or a combination an options class refuses is a DataError naming
+    the parameter."""
+    changes = {}
     for name, value in (overrides or {}).items():
         if name not in BY_NAME:
             raise DataError(f"unknown parameter {name!r} (known: {', '.join(BY_NAME)})")
-        values[name] = BY_NAME[name].check(value)
-    return values
+        p = BY_NAME[name]
+        changes[name] = p.field_value(p.check(value))
+    try:
+        return (base or Settings()).replace(**changes)
+    except ValueError as exc:  # an options class's own check across its fields
+        raise DataError(f"parameters: {exc}") from None
 
 
-def options(cls: type[Options], values: dict[str, Any], **fixed: Any) -> Options:
-    """The options dataclass ``cls`` with every field a parameter sets taken from ``values`` (``resolve``'s output)
-    and the fields in ``fixed``; other fields keep their defaults."""
-    fields = {p.option[1]: None if p.none_as is not None and values[p.name] == p.none_as else values[p.name]
-              for p in PARAMS if p.option is not None and p.option[0] is cls}
-    return cls(**fields, **fixed)
+def parameter_values(settings: Settings) -> dict[str, Any]:
+    """Every parameter's value in ``settings`` (as a ROS parameter: ``hop`` 0 where the field is None)."""
+    out = {}
+    for p in PARAMS:
+        value = settings.value(p.name)
+        out[p.name] = p.none_as if value is None else value
+    return out
 
 
 def load_yaml(path: str | Path, *, node: str = NODE_NAME) -> dict[str, Any]:
@@ -247,6 +263,15 @@ def parse_assignment(text: str) -> tuple[str, str]:
     return name, value
 
 
+def settings_from_cli(params_file: str | None, assignments: list[str], named: dict[str, Any] | None = None) -> Settings:
+    """Settings of a ``vi3`` command: defaults < ``--params-file`` < ``--param NAME=VALUE`` < the command's named
+    options (``named``: parameter name -> value, None where the option was not given), checked once."""
+    overrides = load_yaml(params_file) if params_file else {}
+    overrides.update(parse_assignment(a) for a in assignments)
+    overrides.update({k: v for k, v in (named or {}).items() if v is not None})
+    return resolve(overrides)
+
+
 def markdown_table() -> str:
     """The parameter table of docs/node.md."""
     rows = ["| name | type | default | range / choices | description |", "|---|---|---|---|---|"]
@@ -256,3 +281,15 @@ def markdown_table() -> str:
             if isinstance(p.default, bool) else str(p.default)
         rows.append(f"| `{p.name}` | {p.type.__name__} | {default} | {allowed} | {p.description} |")
     return "\n".join(rows)
+
+
+def _check_table() -> None:
+    """Every parameter names a field of its group, and no name is in two groups (one name per setting)."""
+    for p in PARAMS:
+        if p.group not in _CLASS_ATTR or p.name not in {f.name for f in dataclasses.fields(p.group)}:
+            raise AssertionError(f"parameter {p.name}: no field of that name in {p.group.__name__}")
+    if len(BY_NAME) != len(PARAMS):
+        raise AssertionError("a parameter is declared twice")
+
+
+_check_table()

@@ -56,8 +56,10 @@ from vi3_ros.io.reader import (
     resolve_input,
 )
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
+from vi3_ros.outputs import OUTPUTS
 from vi3_ros.params import NODE_NAME
-from vi3_ros.pipeline import OUTPUTS, ClipReport, Pipeline, make_pipeline
+from vi3_ros.pipeline import ClipReport, Pipeline, make_pipeline
+from vi3_ros.settings import InputOptions, Settings
 
 REALTIME_STOP_WAIT_S = 0.5  # s an interrupted realtime replay waits for the clip in the worker, as the node's shutdown
 
@@ -337,7 +339,7 @@ def _feed(pipeline: Pipeline, event: Event) -> None:
 _COPY_ENCODINGS = {("u1", 2): "mono8", ("u1", 3): "rgb8", ("u2", 2): "mono16"}  # (dtype, ndim) -> encoding
 
 
-def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, values: dict[str, Any]) -> None:
+def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, settings: Settings) -> None:
     """The input image / IMU sample as a Jazzy message on its input topic with its exact stamp (so the output bag
     is self-contained)."""
     types = sink.types
@@ -346,29 +348,30 @@ def _copy_input(sink: McapSink, event: ImageEvent | ImuEvent, values: dict[str, 
         enc = _COPY_ENCODINGS.get((img.dtype.str[1:], img.ndim))
         if enc is None:  # a frame no Image encoding here describes (the pipeline drops it, naming it)
             return
-        msg = numpy_to_image(img, encoding=enc, stamp_ns=event.t_ns, frame_id=values["camera_frame"], types=types)
-        sink.write(values["image_topic"], "sensor_msgs/msg/Image", msg, event.t_ns)
+        msg = numpy_to_image(img, encoding=enc, stamp_ns=event.t_ns, frame_id=settings.frames.camera_frame,
+                             types=types)
+        sink.write(settings.inputs.image_topic, "sensor_msgs/msg/Image", msg, event.t_ns)
     else:
         ori = None if event.orientation is None else np.asarray(event.orientation, np.float64)[None]
         (msg,) = samples_to_imus(ImuSamples(np.array([event.t]), np.asarray(event.gyro)[None],
                                             np.asarray(event.accel)[None], ori),
-                                 frame_id=values["imu_frame"], types=types, stamps_ns=[event.t_ns])
-        sink.write(values["imu_topic"], "sensor_msgs/msg/Imu", msg, event.t_ns)
+                                 frame_id=settings.frames.imu_frame, types=types, stamps_ns=[event.t_ns])
+        sink.write(settings.inputs.imu_topic, "sensor_msgs/msg/Imu", msg, event.t_ns)
 
 
-def topic_requests(values: dict[str, Any], image_topic: str | None = None,
+def topic_requests(inputs: InputOptions, image_topic: str | None = None,
                    imu_topic: str | None = None) -> tuple[TopicRequest, TopicRequest]:
     """The image and IMU topics replay reads: ``image_topic`` / ``imu_topic`` (``--image-topic`` /
     ``--imu-topic``) when given, else the parameters' topics when the recording has them, else the only topic of
     the type (``vi3_ros.io.reader.choose_topics``); images of the type ``image_transport`` allows."""
-    return (TopicRequest(image_topic, values["image_topic"], IMAGE_TRANSPORTS[values["image_transport"]]),
-            TopicRequest(imu_topic, values["imu_topic"]))
+    return (TopicRequest(image_topic, inputs.image_topic, IMAGE_TRANSPORTS[inputs.image_transport]),
+            TopicRequest(imu_topic, inputs.imu_topic))
 
 
-def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any], copy_inputs: bool = False,
+def replay(input_path: str | Path, output: str | Path, *, settings: Settings, copy_inputs: bool = False,
            progress: bool = True, force: bool = False, image_topic: str | None = None,
            imu_topic: str | None = None, realtime: bool = False) -> ReplaySummary:
-    """Replay ``input_path`` through the pipeline configured by parameter ``values``; write outputs to ``output``;
+    """Replay ``input_path`` through the pipeline configured by ``settings``; write outputs to ``output``;
     ``realtime``: at the recorded rate into the node's worker thread (see the module docstring).
 
     Without ``calib_file`` the input's own calibration (``input_calib``) is used, unless CameraInfo or /tf_static
@@ -379,22 +382,23 @@ def replay(input_path: str | Path, output: str | Path, *, values: dict[str, Any]
     inside the input becomes drops and statuses."""
     input_path, types = Path(input_path), jazzy_types()
     resolve_input(input_path)  # a missing or unknown input fails before anything is written
-    if not values["calib_file"] and not values["camera_info_topic"] and not values["use_tf_static"]:
+    inputs = settings.inputs
+    if not inputs.calib_file and not inputs.camera_info_topic and not inputs.use_tf_static:
         found = input_calib(input_path)
-        values = {**values, "calib_file": str(found) if found is not None else ""}
-    image, imu = topic_requests(values, image_topic, imu_topic)
+        settings = settings.replace(calib_file=str(found) if found is not None else "")
+    image, imu = topic_requests(settings.inputs, image_topic, imu_topic)
     summary = ReplaySummary(realtime=realtime)
     interrupts.hold()  # a temporary output exists only together with the code that removes it
     sink = McapSink(output, types=types, force=force)
     try:
         interrupts.release()  # a signal that came meanwhile interrupts here
-        pipeline = make_pipeline(values, sink=sink, types=types, synchronous=not realtime,
+        pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,
                                  on_report=lambda r: _record_latency(summary, r))
         start = time.perf_counter()  # model loading is not part of the replay's speed
         _run(pipeline, sink, iter_events(input_path, image=image, imu=imu,
-                                         camera_info_topic=values["camera_info_topic"],
-                                         tf_static=values["use_tf_static"]),
-             summary, values, copy_inputs=copy_inputs, progress=progress, name=input_path.name)
+                                         camera_info_topic=settings.inputs.camera_info_topic,
+                                         tf_static=settings.inputs.use_tf_static),
+             summary, settings, copy_inputs=copy_inputs, progress=progress, name=input_path.name)
         summary.wall_s = time.perf_counter() - start
         summary.clips = pipeline.buffer.clips
         summary.drops = pipeline.drop_counts
@@ -422,14 +426,14 @@ def _record_latency(summary: ReplaySummary, report: ClipReport) -> None:
         summary.latencies_ms.append(report.latency_s * 1e3)
 
 
-def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, values: dict[str, Any], *,
+def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, settings: Settings, *,
          copy_inputs: bool, progress: bool, name: str) -> None:
     """Feed every input event to the pipeline, the diagnostics timer in bag time (realtime: at the recorded rate, then
     wait for the worker to finish its clips); publish the final counts and close the pipeline (also when interrupted:
     a clip still running then publishes nothing). Sets ``summary.frames``, ``summary.bag_s`` and
     ``summary.feed_lag_ms``."""
     t_first = t_last = None
-    timer = _BagTimer(round(values["diagnostics_period"] * 1e9))
+    timer = _BagTimer(round(settings.outputs.diagnostics_period * 1e9))
     clock = _ReplayClock() if summary.realtime else None
     try:
         with tqdm(desc=f"replay {name}", unit=" frames", disable=not progress, leave=False) as bar:
@@ -441,7 +445,7 @@ def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, val
                         clock.wait_until(t_last)
                         sink.clock = clock.now_ns
                     if copy_inputs:
-                        _copy_input(sink, event, values)
+                        _copy_input(sink, event, settings)
                 _feed(pipeline, event)
                 if t_last is not None and timer.due(t_last):
                     pipeline.publish_diagnostics(t_last)

@@ -82,18 +82,18 @@ def bench_replay(args: argparse.Namespace) -> dict:
                  **({"calib_file": str(calib)} if calib is not None else {}), **dict(map(parse_assignment, args.param))}
     if args.backbone_delay is not None:
         overrides["backbone_delay"] = args.backbone_delay
-    values = resolve(overrides)
+    settings = resolve(overrides)
     runs, cpu, odometry = [], [], []
     with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
         for i in range(args.repeats or 1):
             c0 = time.process_time()
-            runs.append(replay(inp, Path(tmp) / f"out{i}.mcap", values=values, progress=False,
+            runs.append(replay(inp, Path(tmp) / f"out{i}.mcap", settings=settings, progress=False,
                                realtime=args.realtime))
             cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
         peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         for run in runs:
             if gt is not None and run.output is not None:
-                odometry.append(odometry_report(read_odometry(run.output), gt, time_offset=values["time_offset"]))
+                odometry.append(odometry_report(read_odometry(run.output), gt, time_offset=settings.buffer.time_offset))
     rtf = [r.realtime_factor for r in runs]
     median = int(np.argsort(rtf)[len(rtf) // 2])
     best = runs[median]
@@ -101,7 +101,7 @@ def bench_replay(args: argparse.Namespace) -> dict:
             "clips": best.clips,
             "median_latency_ms": round(best.median_latency_ms, 1), "bag_s": round(best.bag_s, 3),
             "wall_s": round(best.wall_s, 3), "outcomes": dict(best.outcomes), "backbone": args.backbone,
-            "realtime": args.realtime, "backbone_delay": values["backbone_delay"],
-            "imu_odom_rate": values["imu_odom_rate"], "input": str(inp),
+            "realtime": args.realtime, "backbone_delay": settings.model.backbone_delay,
+            "imu_odom_rate": settings.outputs.imu_odom_rate, "input": str(inp),
             "peak_rss_mb": round(peak_rss_mb, 1), **torch_thread_settings(),
             **(odometry[median] if len(odometry) == len(runs) else {})}

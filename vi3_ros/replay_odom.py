@@ -27,7 +27,7 @@ from msg_adapters.stamps import stamp_to_ns
 from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.eval.chained import chained_metrics, gt_path_length
 from vi3_core.types import window_bounds
-from vi3_ros.pipeline import OUTPUTS, STATUS_NAME
+from vi3_ros.outputs import OUTPUTS, STATUS_NAME
 from vi3_ros.replay import topic_name
 
 

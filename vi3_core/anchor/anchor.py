@@ -93,6 +93,6 @@ def anchor(clip: Clip, backbone: Backbone, *, mode: str = "init", options: Ancho
 
     ttr = refine(backbone, inputs, base_pred, init.target, options)
     timings["ttr_s"] = time.perf_counter() - t2
-    timings["ttr_ms_per_iter"] = float(np.median(ttr.step_ms)) if options.steps else 0.0
+    timings["ttr_ms_per_iter"] = float(np.median(ttr.step_ms)) if options.ttr_steps else 0.0
     return AnchorResult(geometry=ttr.geometry, base=base, init=init, mode="ttr", alpha=ttr.alpha, target=init.target,
                         losses=ttr.losses, alphas=ttr.alphas, timings=timings, status="ok")

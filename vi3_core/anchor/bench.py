@@ -32,20 +32,20 @@ def bench_ttr(args) -> dict:
     steps = args.repeats or 40
     backbone, described = build_bench_backbone(args)  # first: a bad option fails before any data is made
     seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
-    clip = make_clip(seq, sample_clips(len(seq), n=8, stride=2, mode="paper")[1], with_depth=False)
+    clip = make_clip(seq, sample_clips(len(seq), mode="paper")[1], with_depth=False)
     clock = DeviceClock(backbone.device)
     # Random weights give geometry the GT-free initialisation rightly rejects, and a step costs the same whatever
     # the weights: with --random-init the TTR target comes from the sequence's ground truth.
     init = (lambda base: oracle_init(clip, base)) if args.random_init else None
     with clock.lap() as lap:
-        result = anchor(clip, backbone, mode="ttr", options=AnchorOptions(steps=steps), init=init)
+        result = anchor(clip, backbone, mode="ttr", options=AnchorOptions(ttr_steps=steps), init=init)
     h, w = result.geometry.depth.shape[1:]
     nan = float("nan")
     t = result.timings
     ms_per_iter, init_s = t.get("ttr_ms_per_iter", nan), t.get("init_s", nan)
     return {"ms_per_iter": ms_per_iter, "steps": steps, "total_s": lap.wall_s, "backbone_s": t["backbone_s"],
             "init_ms": 1e3 * init_s, "ttr_s": t.get("ttr_s", nan),
-            "paper_total_s": init_s + AnchorOptions().steps * ms_per_iter / 1e3, "frames": clip.n,
+            "paper_total_s": init_s + AnchorOptions().ttr_steps * ms_per_iter / 1e3, "frames": clip.n,
             "resolution": [int(h), int(w)], **described, "init": "ground_truth" if args.random_init else "gt_free",
             "init_status": result.init.status.value, "mode": result.mode, **clock.memory(),
             **torch_thread_settings()}

@@ -19,7 +19,7 @@ class AnchorOptions:
     geocalib: use GeoCalib as a gravity seed when it is installed.
     """
 
-    steps: int = 160
+    ttr_steps: int = 160
     lr: float | None = None
     lr_alpha: float = 3e-3
     weight_decay: float = 0.01
@@ -35,5 +35,5 @@ class AnchorOptions:
     geocalib: bool = False
 
     def __post_init__(self) -> None:
-        if self.steps < 0 or self.last_blocks < 0 or self.dcons_stride < 1:
-            raise ValueError("steps and last_blocks must be >= 0 and dcons_stride >= 1")
+        if self.ttr_steps < 0 or self.last_blocks < 0 or self.dcons_stride < 1:
+            raise ValueError("ttr_steps and last_blocks must be >= 0 and dcons_stride >= 1")

@@ -101,13 +101,13 @@ def refine(backbone: Backbone, inputs: BackboneInputs, base: Prediction, target:
     groups = [{"params": [log_alpha], "lr": options.lr_alpha, "weight_decay": 0.0}]
     if params:
         groups.append({"params": params, "lr": options.lr or backbone.ttr_lr, "weight_decay": options.weight_decay})
-    history = {k: np.zeros(options.steps) for k in LOSS_NAMES}
-    alphas = np.zeros(options.steps)
-    step_ms = np.zeros(options.steps)
+    history = {k: np.zeros(options.ttr_steps) for k in LOSS_NAMES}
+    alphas = np.zeros(options.ttr_steps)
+    step_ms = np.zeros(options.ttr_steps)
     t_start = time.perf_counter()
     with trainable_scope(backbone, params):
         opt = torch.optim.AdamW(groups)
-        for k in range(options.steps):
+        for k in range(options.ttr_steps):
             t_step = time.perf_counter()
             opt.zero_grad(set_to_none=True)
             pred = backbone.forward(inputs)

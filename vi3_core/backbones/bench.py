@@ -27,7 +27,7 @@ def bench_backbone(args) -> dict:
     repeats = args.repeats or 5
     backbone, described = build_bench_backbone(args)  # first: a bad option fails before any data is made
     seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
-    clip = make_clip(seq, sample_clips(len(seq), n=8, stride=2, mode="paper")[1], with_depth=False)
+    clip = make_clip(seq, sample_clips(len(seq), mode="paper")[1], with_depth=False)
     clock = DeviceClock(backbone.device)
     geometry = backbone.predict(clip.images, clip.K)  # warm-up: imports, allocator, thread pools, kernel choice
     laps = []

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from vi3_core import so3
 from vi3_core.dataset.calib import CameraCalib
 from vi3_core.errors import CalibrationError, DataError
-from vi3_core.types import Clip, GroundTruth, ImuSamples
+from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Clip, GroundTruth, ImuSamples
 
 G_W = np.array([0.0, 0.0, -9.81])
 
@@ -157,7 +157,7 @@ def _fitting_frame(seq: Sequence, i: int) -> np.ndarray:
     return image
 
 
-def sample_clips(n_total: int, *, n: int = 8, stride: int = 2, mode: str = "paper",
+def sample_clips(n_total: int, *, n: int = CLIP_LENGTH, stride: int = CLIP_STRIDE, mode: str = "paper",
                  hop: int | None = None) -> list[np.ndarray]:
     """Frame indices of clips of ``n`` frames ``stride`` apart in a sequence of ``n_total`` frames.
 

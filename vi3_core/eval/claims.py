@@ -64,7 +64,7 @@ class Claims:
 
 def rel_sigma(e: ClipEval) -> float:
     """The clip's relative scale sigma ``scale_sigma / scale`` (NaN when unknown)."""
-    init = e.result.init
+    init = e.init
     return float(init.scale_sigma / init.scale) if init.scale > 0 else float("nan")
 
 

@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vi3_core.eval.metrics import GeometryMetrics, InitMetrics
-from vi3_core.types import AnchorResult, Geometry, ImuTrajectory
+from vi3_core.online import OnlineDecision
+from vi3_core.types import AnchorResult, Geometry, ImuTrajectory, InitResult
 
 
 @dataclass
@@ -17,9 +18,11 @@ class ClipEval:
     indices: [n] frame indices in the sequence; stamps: [n] s; status/reason: the init status and its reason;
     mode: the anchoring mode that actually ran ("none" when the init was not ok); T_gt: [n,4,4] GT camera poses
     in the first camera frame C1; down_c1: [3] unit gravity direction in C1 (from GT), for top-down views;
-    result: the final ``AnchorResult``; fast: the fast init ``AnchorResult`` when mode is "cond"/"ttr";
-    columns: ``GeometryMetrics`` per column ("base", "init", and "cond"/"ttr" when run);
-    init_metrics: errors of the initialisation against GT.
+    init: the clip's initialisation; result: the final ``AnchorResult`` (None when the data checks rejected the clip
+    before the backbone); fast: the fast init ``AnchorResult`` when mode is "cond"/"ttr"; columns:
+    ``GeometryMetrics`` per column ("base", "init", and "cond"/"ttr" when run); init_metrics: errors of the
+    initialisation against GT; decision: the online window's decision, with the clip's own initialisation (chained
+    runs only).
     """
 
     indices: np.ndarray
@@ -29,10 +32,12 @@ class ClipEval:
     mode: str
     T_gt: np.ndarray
     down_c1: np.ndarray
-    result: AnchorResult
+    init: InitResult
+    result: AnchorResult | None
     fast: AnchorResult | None
     columns: dict[str, GeometryMetrics] = field(default_factory=dict)
     init_metrics: InitMetrics | None = None
+    decision: OnlineDecision | None = None
 
     @property
     def ok(self) -> bool:
@@ -40,9 +45,12 @@ class ClipEval:
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """Camera trajectories [n,4,4] in C1 by name: "gt", "base", "imu" (the metric IMU target, when the
-        init was ok), "init" (fast init result, when refined), "vi3" (the final metric output, when ok)."""
+        init was ok), "init" (fast init result, when refined), "vi3" (the final metric output, when ok); only "gt"
+        when the backbone did not run."""
+        if self.result is None:
+            return {"gt": self.T_gt}
         out = {"gt": self.T_gt, "base": self.result.base.T_wc}
-        target: ImuTrajectory | None = self.result.target or self.result.init.target
+        target: ImuTrajectory | None = self.result.target or self.init.target
         if target is not None:
             out["imu"] = target.T_wc
         if self.ok:

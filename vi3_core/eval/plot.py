@@ -60,7 +60,7 @@ def draw_clip(ax_traj, ax_cloud, e: ClipEval) -> None:
         xy = so3.relative_to_first(T)[:, :3, 3] @ B.T
         ax_traj.plot(xy[:, 0], xy[:, 1], marker="o", ms=3, color=COLORS[name], label=LABELS[name],
                      **LINE_STYLES.get(name, {"lw": 1.5}))
-    clouds = [("base", e.result.base)] + ([("vi3", e.vi3_geometry())] if e.ok else [])
+    clouds = ([("base", e.result.base)] if e.result is not None else []) + ([("vi3", e.vi3_geometry())] if e.ok else [])
     for name, geometry in clouds:
         xy = backproject(geometry) @ B.T
         ax_cloud.scatter(xy[:, 0], xy[:, 1], s=1.0, color=COLORS[name], alpha=0.5, lw=0, label=f"{LABELS[name]} points")

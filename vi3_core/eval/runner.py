@@ -1,11 +1,12 @@
-"""The evaluation loop: clips of a sequence -> the same ``anchor`` the node runs -> per-clip metrics.
+"""The evaluation loop: clips of a sequence -> the node's ``StreamEstimator`` -> per-clip metrics.
 
-Clips are sampled as in the paper (n = 8 frames, stride 2, start / middle / end of the sequence) or every clip
-("sliding"). Each clip goes through ``vi3_core.anchor.anchor`` with the GT-free initialisation (``init_source =
-"vi3"``) or the oracle initialisation from ground truth (``"gt"``: GT gravity, v1 and gyro bias, as the paper's
-GT-vs-GT-free tables). Ground-truth depth (undistorted image resolution) is resampled onto the backbone's working
-grid by nearest neighbour (``metrics.resample_depth``), so predictions are compared at the resolution the model
-produced them and no depth value is invented.
+Clips are sampled as in the paper (8 frames, stride 2, start / middle / end of the sequence) or every clip
+("sliding"). Each clip goes through the same ``vi3_core.online.StreamEstimator`` the node runs: chained
+(``evaluate_online``, the node's default), or every clip on its own (``evaluate_sequence``) with the GT-free
+initialisation (``init_source = "vi3"``) or the oracle initialisation from ground truth (``"gt"``: GT gravity, v1
+and gyro bias, as the paper's GT-vs-GT-free tables). Ground-truth depth (undistorted image resolution) is resampled
+onto the backbone's working grid by nearest neighbour (``metrics.resample_depth``), so predictions are compared at the
+resolution the model produced them and no depth value is invented.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from vi3_core.anchor import MODES, AnchorOptions, anchor
+from vi3_core.anchor import MODES, AnchorOptions
 from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.sequence import Sequence, make_clip, sample_clips
 from vi3_core.errors import DataError, Vi3Error
@@ -26,12 +27,12 @@ from vi3_core.eval import metrics
 from vi3_core.eval.chained import ChainedMetrics, chained_metrics, gt_path_length
 from vi3_core.eval.claims import scale_error
 from vi3_core.eval.clip_eval import ClipEval
-from vi3_core.init import InitOptions, oracle_init
+from vi3_core.init import InitOptions
 from vi3_core.init.oracle import gt_init_state
-from vi3_core.online import OnlineEstimator, OnlineOptions
-from vi3_core.types import AnchorResult, Clip, Geometry, InitResult
+from vi3_core.online import OnlineOptions, StreamEstimator, StreamOptions
+from vi3_core.online.stream import INIT_SOURCES
+from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Clip, Geometry
 
-INIT_SOURCES = ("vi3", "gt")
 CLIP_SAMPLING = ("paper", "sliding")
 
 #: The supplementary tables' initialisation ablations, as ``InitOptions`` overrides of the paper's defaults.
@@ -46,24 +47,27 @@ ABLATIONS: dict[str, dict] = {
 
 @dataclass(frozen=True)
 class EvalOptions:
-    """Options of ``evaluate_sequence``.
+    """Options of ``evaluate_sequence`` / ``evaluate_online``.
 
     mode: anchoring mode of the VI3 column ("init" | "cond" | "ttr"); with "cond"/"ttr" the fast init result
         (which ``anchor`` reports before refining) is evaluated too, as the "init" column.
     init_source: "vi3" (GT-free, the default) or "gt" (oracle initialisation from ground truth).
-    clips: "paper" (start / middle / end) or "sliding" (every ``hop`` frames); n, stride: frames per clip and
-        frame stride; max_clips: keep at most this many clips (evenly spread), None for all.
+    clips: "paper" (start / middle / end) or "sliding" (every ``hop`` frames); clip_length, stride, hop: frames per
+        clip, frame stride and frames between sliding clips (None: back to back), as the node's parameters of the same
+        names; max_clips: keep at most this many clips (evenly spread), None for all.
+    anchor_options, init_options, online_options: the stream's settings (None: the defaults).
     """
 
     mode: str = "init"
     init_source: str = "vi3"
     clips: str = "paper"
-    n: int = 8
-    stride: int = 2
+    clip_length: int = CLIP_LENGTH
+    stride: int = CLIP_STRIDE
     hop: int | None = None
     max_clips: int | None = None
     anchor_options: AnchorOptions | None = None
     init_options: InitOptions | None = None
+    online_options: OnlineOptions | None = None
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -72,49 +76,50 @@ class EvalOptions:
             if value not in allowed:
                 raise ValueError(f"EvalOptions.{name} must be one of {', '.join(allowed)}; got {value!r}")
 
+    def stream(self, backbone: Backbone, *, online: bool) -> StreamEstimator:
+        """The stream estimator these options describe (``online``: chained, else every clip on its own)."""
+        return StreamEstimator(backbone, options=StreamOptions(online=online, mode=self.mode,
+                                                               init_source=self.init_source),
+                               online=self.online_options, init=self.init_options, anchor=self.anchor_options)
+
 
 def _column_metrics(geometry: Geometry, T_gt: np.ndarray, depth_gt: np.ndarray | None) -> metrics.GeometryMetrics:
     return metrics.geometry_metrics(geometry.T_wc, T_gt, geometry.depth if depth_gt is not None else None, depth_gt)
 
 
-def evaluate_clip(clip: Clip, backbone: Backbone, *, options: EvalOptions, indices: np.ndarray | None = None,
-                  init: Callable[[Geometry], InitResult] | None = None) -> ClipEval:
-    """Anchor ``clip`` (which must carry ground truth) and compute every metric of the paper on it. ``init``
-    (with ``init_source`` "vi3") builds the initialisation from the base geometry (``vi3_core.online``)."""
+def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | None = None) -> ClipEval:
+    """Run ``clip`` (which must carry ground truth) through ``stream`` and compute every metric of the paper on it."""
     if clip.gt is None:
         raise DataError(f"evaluate_clip: the clip at t = {clip.stamps[0]:.6f}..{clip.stamps[-1]:.6f} s has no ground "
                         "truth (the GT track does not cover it); evaluation needs GT poses and velocities")
-    if options.init_source == "gt":
-        init = lambda base: oracle_init(clip, base)  # scales anchor's own base prediction: one forward pass
-    if hasattr(backbone, "bind"):  # the ground-truth pose instrument predicts from the clip's ground truth
-        backbone.bind(clip)
-    fast: list[AnchorResult] = []
-    result = anchor(clip, backbone, mode=options.mode, options=options.anchor_options,
-                    init_options=options.init_options, init=init,
-                    on_init=fast.append if options.mode != "init" else None)
+    if hasattr(stream.backbone, "bind"):  # the ground-truth pose instrument predicts from the clip's ground truth
+        stream.backbone.bind(clip)
+    outcome = stream.process(clip)
+    result, init = outcome.result, outcome.init
     T_gt = metrics.gt_camera_poses(clip.gt, clip.T_BC)
     g_b1, _, _ = gt_init_state(clip.gt)
     down_c1 = clip.T_BC[:3, :3].T @ g_b1 / np.linalg.norm(g_b1)
-
-    depth_gt = None
-    if clip.gt.depth is not None:
-        depth_gt = metrics.resample_depth(clip.gt.depth, clip.K, result.base.K[0],
-                                          result.base.depth.shape[1:])
-    columns = {"base": _column_metrics(result.base, T_gt, depth_gt)}
-    if result.init.ok:
-        if fast:
-            columns["init"] = _column_metrics(fast[0].geometry, T_gt, depth_gt)
-        columns[result.mode] = _column_metrics(result.geometry, T_gt, depth_gt)
+    columns = {}
+    if result is not None:
+        depth_gt = None
+        if clip.gt.depth is not None:
+            depth_gt = metrics.resample_depth(clip.gt.depth, clip.K, result.base.K[0], result.base.depth.shape[1:])
+        columns["base"] = _column_metrics(result.base, T_gt, depth_gt)
+        if init.ok:
+            if outcome.fast is not None:
+                columns["init"] = _column_metrics(outcome.fast.geometry, T_gt, depth_gt)
+            columns[result.mode] = _column_metrics(result.geometry, T_gt, depth_gt)
     return ClipEval(indices=np.arange(clip.n) if indices is None else np.asarray(indices), stamps=clip.stamps,
-                    status=result.init.status.value, reason=result.init.reason, mode=result.mode, T_gt=T_gt,
-                    down_c1=down_c1, result=result, fast=fast[0] if fast and result.init.ok else None,
-                    columns=columns,
-                    init_metrics=metrics.init_metrics(result.init, clip.gt))
+                    status=init.status.value, reason=init.reason, mode=outcome.mode, T_gt=T_gt, down_c1=down_c1,
+                    init=init, result=result, fast=outcome.fast, columns=columns,
+                    init_metrics=metrics.init_metrics(init, clip.gt), decision=outcome.decision)
 
 
 def evaluate_frames(seq: Sequence, idx: np.ndarray, backbone: Backbone, *, options: EvalOptions) -> ClipEval:
-    """``evaluate_clip`` on the clip of ``seq``'s frames ``idx`` [n] (one clip of ``evaluate_sequence``)."""
-    return evaluate_clip(make_clip(seq, idx, with_images=backbone.needs_images), backbone, options=options, indices=idx)
+    """``evaluate_clip`` on the clip of ``seq``'s frames ``idx`` [n], on its own (one clip of
+    ``evaluate_sequence``)."""
+    return evaluate_clip(make_clip(seq, idx, with_images=backbone.needs_images),
+                         options.stream(backbone, online=False), indices=idx)
 
 
 def clip_label(sequence: str, idx: np.ndarray) -> str:
@@ -124,7 +129,7 @@ def clip_label(sequence: str, idx: np.ndarray) -> str:
 
 def clip_indices(n_frames: int, *, options: EvalOptions) -> list[np.ndarray]:
     """Frame indices of the clips to evaluate (``sample_clips``), thinned evenly to ``max_clips``."""
-    clips = sample_clips(n_frames, n=options.n, stride=options.stride, mode=options.clips, hop=options.hop)
+    clips = sample_clips(n_frames, n=options.clip_length, stride=options.stride, mode=options.clips, hop=options.hop)
     if options.max_clips is not None and len(clips) > options.max_clips:
         keep = np.unique(np.linspace(0, len(clips) - 1, options.max_clips).round().astype(int))
         clips = [clips[i] for i in keep]
@@ -224,60 +229,56 @@ def contiguity_gap(seq: Sequence, clips: list[np.ndarray], max_gap_s: float) -> 
 
 
 def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None,
-                    online_options: OnlineOptions | None = None,
                     clips: list[np.ndarray] | None = None,
                     on_clip: Callable[[int], None] | None = None) -> tuple[list[ClipEval], OnlineRun]:
-    """``evaluate_sequence`` with the metric state carried across clips (``vi3_core.online``, GT-free): each clip's
-    initialisation from the stream's priors, and the clips chained into one odom trajectory, scored against GT per
-    segment. Clips that are not contiguous are still evaluated one by one, but their trajectory is not scored
-    (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap in the images);
-    ``on_clip(k)`` is called after the k-th clip is evaluated (progress beside the bar). A clip that fails raises
-    ``EvaluationStopped`` with what was computed before it."""
+    """``evaluate_sequence`` with the metric state carried across clips (``StreamEstimator`` with ``online``, GT-free,
+    as the node runs): each clip's initialisation from the stream's window, and the clips chained into one odom
+    trajectory, scored against GT per segment. Clips that are not contiguous are still evaluated one by one, but their
+    trajectory is not scored (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap
+    in the images); ``on_clip(k)`` is called after the k-th clip is evaluated (progress beside the bar). A clip that
+    fails raises ``EvaluationStopped`` with what was computed before it."""
     options = options or EvalOptions()
     if options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
     sampled = check_sequence(seq, options=options)
     clips = sampled if clips is None else clips
-    est = OnlineEstimator(options=online_options, init_options=options.init_options)
-    evals, free = [], []
+    stream = options.stream(backbone, online=True)
+    max_bridge = stream.online_options.online_max_bridge
+    evals: list[ClipEval] = []
     run = OnlineRun(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
     for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
         try:
             # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
-            clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=backbone.needs_images)
-            ev = evaluate_clip(clip, backbone, options=options, indices=idx,
-                               init=lambda base, clip=clip: est.initialise(clip, base))
-            est.update(clip, ev.result)
+            clip = make_clip(seq, idx, history_s=max_bridge, with_images=backbone.needs_images)
+            ev = evaluate_clip(clip, stream, indices=idx)
         except (Vi3Error, ValueError, OSError) as err:
-            raise _stopped(seq, idx, err, evals, _finish(seq, est, run, evals, free, clips)) from err
-        run.decisions.append(est.last.describe())
-        if evals and est.last.reset:  # the first clip of the stream always starts the window
+            raise _stopped(seq, idx, err, evals, _finish(seq, stream, run, evals, clips)) from err
+        run.decisions.append(ev.decision.describe())
+        if evals and ev.decision.reset:  # the first clip of the stream always starts the window
             run.resets += 1
         evals.append(ev)
-        diag = ev.result.init.diagnostics
-        free.append((diag["free_status"], diag["free_scale"], diag.get("free_scale_sigma", np.nan)))
         if on_clip is not None:
             on_clip(len(evals))
-    return evals, _finish(seq, est, run, evals, free, clips)
+    return evals, _finish(seq, stream, run, evals, clips)
 
 
-def _finish(seq: Sequence, est: OnlineEstimator, run: OnlineRun, evals: list[ClipEval],
-            free: list[tuple[str, float, float]], clips: list[np.ndarray]) -> OnlineRun:
+def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[ClipEval],
+            clips: list[np.ndarray]) -> OnlineRun:
     """``run`` completed with the trajectory, the per-clip scale errors of ``evals`` and the metrics."""
-    traj = est.trajectory
+    traj = stream.trajectory
     run.stamps, run.T_OB, run.segment_starts = traj.stamps, traj.T_OB, list(traj.resets)
     run.T_WB = seq.gt.at(traj.stamps).T_WB if len(traj.stamps) else np.zeros((0, 4, 4))
     run.scale_err = np.array([scale_error(e, e.mode) for e in evals])
-    # Scale (fit) is linear in the scale: the free init's is the base's times its scale.
-    base = np.array([e.columns["base"].scale_fit for e in evals])
-    status = [st for st, _, _ in free]
-    scale = np.array([sc for _, sc, _ in free], dtype=np.float64)
-    ok = np.array([st == "ok" for st in status], dtype=bool)
-    run.independent_status = status
+    # Scale (fit) is linear in the scale: the clip's own init's is the base's times its scale.
+    base = np.array([e.columns["base"].scale_fit if "base" in e.columns else np.nan for e in evals])
+    own = [e.decision.own for e in evals]
+    scale = np.array([o.scale for o in own], dtype=np.float64)
+    ok = np.array([o.ok for o in own], dtype=bool)
+    run.independent_status = [o.status.value for o in own]
     run.independent_scale_err = np.where(ok, np.abs(base * scale - 1.0), np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
-        run.independent_rel_sigma = np.array([sg for _, _, sg in free], dtype=np.float64) / scale
-    run.reason = contiguity_gap(seq, clips, est.options.max_bridge_s)
+        run.independent_rel_sigma = np.array([o.scale_sigma for o in own], dtype=np.float64) / scale
+    run.reason = contiguity_gap(seq, clips, stream.online_options.online_max_bridge)
     if not run.reason and len(traj.stamps) < 2:
         run.reason = (f"no trajectory: {len(traj.stamps)} chained poses ({sum(e.ok for e in evals)} of "
                       f"{len(evals)} clips ok)")

@@ -1,28 +1,32 @@
 """The GT-free inertial initialiser (paper Sec. "Inertial state initialization"): a facade that validates the
 data, estimates bg (Eq. bg), runs the scale/gravity fixed point from each gravity seed, applies the consensus
-guard (Eq. guard), recovers v1 (Eq. v0), checks observability and builds the metric IMU target trajectory.
+guard (Eq. guard), then hands the clip to one scale solver: the error-model fit (default, ``_error_model_scale``:
+scale, gravity, v1 and both biases with a sigma) or the paper's Eq. S / Eq. v0 (``_paper_scale``), checks
+observability and builds the metric IMU target trajectory.
 
-Physical assumptions: constant biases over the clip, negligible accelerometer bias (Kaiser et al.), and
-enough acceleration during the clip for velocity increments to observe scale. With constant velocity, hover,
-pure rotation or no motion the scale is unobservable: the result then says so and claims no scale.
+Physical assumptions: biases constant over the clip (the error-model fit estimates the accelerometer bias with a
+prior; the paper's solvers assume it negligible, after Kaiser et al.), and enough acceleration during the clip for
+velocity increments to observe scale. With constant velocity, hover, pure rotation or no motion the scale is
+unobservable: the result then says so and claims no scale.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from vi3_core import so3
+from vi3_core.fit import FitClip, MetricFit
+from vi3_core.fit.position import body_position_terms
 from vi3_core.init import gravity_seeds, validate
-from vi3_core.init.gyro_bias import body_rotations, gyro_bias_eq, refine_gyro_bias, rotation_check
-from vi3_core.init.metric_fit import FitClip, MetricFit
+from vi3_core.init.gyro_bias import RotationCheck, body_rotations, gyro_bias_eq, refine_gyro_bias, rotation_check
 from vi3_core.init.options import InitOptions
-from vi3_core.init.position_fit import body_position_terms
 from vi3_core.init.velocity_gravity import ScaleGravitySystem
-from vi3_core.preintegration import merged_grid, preintegrate
+from vi3_core.preintegration import Preintegration, merged_grid, preintegrate
 from vi3_core.threads import single_blas_thread
-from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus
+from vi3_core.types import Geometry, ImuSamples, InitResult, InitStatus, ScaleFit
 
 
 def _deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -87,6 +91,32 @@ def initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np
         return _initialise(geometry, imu, stamps, T_BC, options or InitOptions(), seeds, imu_history)
 
 
+@dataclass
+class _Inertial:
+    """What both scale solvers start from (``_inertial``): the clip's stamps [n] s, gyro bias bg [3] rad/s, its
+    rotation check, the preintegration (with bias Jacobians for the error-model fit), the paper's scale/gravity system,
+    the adopted gravity g [3] (B1) with its source and consensus angle, the body acceleration RMS (m/s^2), the
+    scale-free parallax and the diagnostics so far."""
+
+    stamps: np.ndarray
+    bg: np.ndarray
+    check: RotationCheck
+    pre: Preintegration
+    system: ScaleGravitySystem
+    g: np.ndarray
+    source: str
+    consensus: float
+    accel_rms: float
+    parallax: float
+    diag: dict
+
+    def result(self) -> InitResult:
+        """The ok result of the gravity estimate, before a solver adds the scale."""
+        return InitResult(InitStatus.OK, "ok", bg=self.bg, g=self.g, gravity_source=self.source,
+                          consensus_deg=self.consensus, iterations=int(self.diag["fp_imu_iterations"]),
+                          diagnostics=self.diag)
+
+
 def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np.ndarray, options: InitOptions,
                 seeds: dict[str, np.ndarray] | None, imu_history: ImuSamples | None) -> InitResult:
     stamps = np.asarray(stamps, dtype=np.float64)
@@ -94,11 +124,20 @@ def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: n
               or validate.check_imu(imu, stamps, options))
     if reason:
         return InitResult(InitStatus.REJECTED, reason)
+    inertial = _inertial(geometry, imu, stamps, T_BC, options, seeds, imu_history)
+    if isinstance(inertial, InitResult):
+        return inertial
+    if options.scale_solver == "eiv":
+        return _error_model_scale(inertial, geometry, T_BC, options)
+    return _paper_scale(inertial, T_BC, options)
+
+
+def _inertial(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: np.ndarray, options: InitOptions,
+              seeds: dict[str, np.ndarray] | None, imu_history: ImuSamples | None) -> _Inertial | InitResult:
+    """The gyro bias (Eq. bg, then the all-pairs refinement), the check of the backbone's rotations against it (a
+    rejected InitResult when they disagree), and gravity (Eqs. gimu / gls, fixed point, Eq. guard over the seeds)."""
     G = options.gravity_norm
     dt_imu = float(np.median(np.diff(imu.t)))
-    eiv = options.scale_solver == "eiv"
-
-    # Gyro bias: Eq. bg, then the all-pairs refinement; then the backbone's rotations must agree with it.
     R_vis = body_rotations(geometry.T_wc[:, :3, :3], T_BC)
     grid = merged_grid(imu, stamps)
     bg = gyro_bias_eq(R_vis, grid.gyro_mean, np.diff(stamps), dt_imu)
@@ -106,11 +145,10 @@ def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: n
     bg = refine_gyro_bias(imu, stamps, R_vis, bg, options.bg_refine_iters, grid=grid)
     check = rotation_check(imu, stamps, R_vis, bg, grid=grid)
     worst, i, j = check.worst()
-    if worst > options.max_rotation_deg:
-        return InitResult(InitStatus.REJECTED, rotation_failure(worst, i, j, options.max_rotation_deg), bg=bg,
+    if worst > options.max_rotation_error:
+        return InitResult(InitStatus.REJECTED, rotation_failure(worst, i, j, options.max_rotation_error), bg=bg,
                           diagnostics={"rotation_residual_deg": worst})
-    pre = preintegrate(imu, stamps, bg, grid=grid, jacobians=eiv)
-
+    pre = preintegrate(imu, stamps, bg, grid=grid, jacobians=options.scale_solver == "eiv")
     a, b = body_position_terms(geometry.T_wc, pre.R, T_BC)
     system = ScaleGravitySystem(a, b, pre, gravity_norm=G)
 
@@ -129,56 +167,74 @@ def _initialise(geometry: Geometry, imu: ImuSamples, stamps: np.ndarray, T_BC: n
     parallax = _parallax(geometry)
     diag.update(bg_eq=bg_eq, s_tls=system.scale(g, "tls"), s_ols=system.scale(g, "ols"), accel_rms=accel_rms,
                 parallax=parallax, seeds=sorted(all_seeds), rotation_residual_deg=worst, g_seed=g)
-    result = InitResult(InitStatus.OK, "ok", bg=bg, g=g, gravity_source=source, consensus_deg=consensus,
-                        iterations=int(diag["fp_imu_iterations"]), diagnostics=diag)
+    return _Inertial(stamps, bg, check, pre, system, g, source, consensus, accel_rms, parallax, diag)
 
-    if eiv:
-        fit = MetricFit([FitClip(stamps, geometry.T_wc)], pre, T_BC, noise=options.noise_model, gravity_norm=G,
-                        bg_sigma=check.bias_sigma(len(stamps)))
-        fit = fit.solve(fit.initial_state(g))
-        st = fit.state
-        s, rel = float(fit.scale[0]), float(fit.scale_rel_sigma[0])
-        sigma_v_m = float(fit.sigma_v[0] / st.lam[0]) if st.lam[0] > 0 else float("nan")
-        g_sigma, v1_sigma = fit.state_sigma(0)
-        diag.update(scale_rel_sigma=rel, sigma_v_m=sigma_v_m, sigma_v_model=float(fit.sigma_v[0]),
-                    fit_dof=float(fit.dof[0]), fit_converged=fit.converged, variance_factor=fit.variance_factor,
-                    fit_lam=float(st.lam[0]), fit_v1=st.v[0], v1_sigma=v1_sigma, g_sigma_deg=math.degrees(g_sigma))
-        result.g, result.bg, result.ba = st.g, st.bg, st.ba
-        disagree = not s > 0.0
-        weak = not rel <= options.max_scale_rel_sigma
-    else:
-        s, rel = system.scale(g, options.scale_solver), float("nan")
-        alignment = system.alignment(g)
-        diag["alignment"] = alignment
-        disagree = not s > 0.0 or alignment < options.min_alignment
-        weak = False
 
-    why = None
-    if system.visual_signal == 0.0:
-        why = "scale unobservable: the backbone predicts no change of velocity"
-    elif accel_rms < options.min_accel_rms:
-        why = (f"scale unobservable: body acceleration RMS {accel_rms:.3f} m/s^2 < {options.min_accel_rms} "
-               "(hover, constant velocity, pure rotation or no motion)")
-    elif parallax < options.min_parallax:
-        why = f"scale unobservable: visual baseline/depth {parallax:.4f} < {options.min_parallax} (no parallax)"
-    elif disagree:
-        why = ("scale unobservable: visual and inertial motion disagree "
-               + (f"(cos {diag['alignment']:.2f} < {options.min_alignment}); " if not eiv else
-                  "(the fitted scale is not positive); ") + "the paper's fallback s = 1 is not claimed")
-    elif weak:
-        why = (f"scale unobservable: relative sigma {rel:.3g} > {options.max_scale_rel_sigma} (visual noise "
-               f"{1e3 * diag['sigma_v_m']:.1f} mm per axis, body acceleration RMS {accel_rms:.2f} m/s^2)")
+def _unobservable(inertial: _Inertial, options: InitOptions) -> str | None:
+    """Why no solver can claim the clip's scale (no visual signal, too little acceleration or parallax), or None."""
+    if inertial.system.visual_signal == 0.0:
+        return "scale unobservable: the backbone predicts no change of velocity"
+    if inertial.accel_rms < options.min_accel_rms:
+        return (f"scale unobservable: body acceleration RMS {inertial.accel_rms:.3f} m/s^2 < min_accel_rms "
+                f"{options.min_accel_rms} (hover, constant velocity, pure rotation or no motion)")
+    if inertial.parallax < options.min_parallax:
+        return (f"scale unobservable: visual baseline/depth {inertial.parallax:.4f} < {options.min_parallax} (no "
+                "parallax)")
+    return None
+
+
+def _error_model_scale(inertial: _Inertial, geometry: Geometry, T_BC: np.ndarray,
+                       options: InitOptions) -> InitResult:
+    """The default solver (beyond the paper): the backbone's positions regressed on the IMU kinematics with the error
+    model (``vi3_core.fit.MetricFit``), gravity, first-frame velocity and both biases refined jointly from the paper's
+    gravity; the scale is claimed when its relative 1-sigma passes ``max_scale_sigma``. Assumes constant biases over
+    the clip (the accelerometer bias has a prior of ``accel_bias_sigma``, the gyro bias one of its rotation-check
+    spread) and visual noise independent per frame, estimated from the clip's own residuals."""
+    fit = MetricFit([FitClip(inertial.stamps, geometry.T_wc)], inertial.pre, T_BC, noise=options.noise_model,
+                    gravity_norm=options.gravity_norm, bg_sigma=inertial.check.bias_sigma(len(inertial.stamps)))
+    res = fit.solve(fit.initial_state(inertial.g))
+    st = res.state
+    g_sigma, v1_sigma = res.state_sigma(0)
+    own = ScaleFit(lam=float(st.lam[0]), scale_rel_sigma=float(res.scale_rel_sigma[0]), v1=st.v[0],
+                   v1_sigma=v1_sigma, g_sigma=g_sigma, sigma_v=float(res.sigma_v[0]), dof=float(res.dof[0]),
+                   variance_factor=res.variance_factor, converged=res.converged)
+    result = inertial.result()
+    result.g, result.bg, result.ba, result.fit = st.g, st.bg, st.ba, own
+    s, rel = float(res.scale[0]), own.scale_rel_sigma
+    why = _unobservable(inertial, options)
+    if why is None and not s > 0.0:
+        why = ("scale unobservable: visual and inertial motion disagree (the fitted scale is not positive); the "
+               "paper's fallback s = 1 is not claimed")
+    elif why is None and not rel <= options.max_scale_sigma:
+        why = (f"scale unobservable: relative sigma {rel:.3g} > max_scale_sigma {options.max_scale_sigma} (visual "
+               f"noise {1e3 * own.sigma_v_m:.1f} mm per axis, body acceleration RMS {inertial.accel_rms:.2f} m/s^2)")
     if why:
         result.status, result.reason = InitStatus.UNOBSERVABLE, why
         return result
+    result.scale, result.scale_sigma, result.v1 = s, rel * s, st.v[0]
+    result.target = inertial.pre.corrected(st.bg, st.ba).propagate(st.g, st.v[0], T_BC)
+    return result
 
-    result.scale, result.scale_sigma = float(s), float(rel * s)
-    if eiv:
-        result.v1 = st.v[0]
-        result.target = pre.corrected(st.bg, st.ba).propagate(st.g, st.v[0], T_BC)
-    else:
-        result.v1, result.diagnostics["v1_method"] = system.initial_velocity(s, g, options.v1_method)
-        result.target = pre.propagate(g, result.v1, T_BC)
+
+def _paper_scale(inertial: _Inertial, T_BC: np.ndarray, options: InitOptions) -> InitResult:
+    """The paper's solvers (ablations): Eq. S by total least squares ("tls") or OLS at the adopted gravity, v1 by
+    Eq. v0. No error model: the scale carries no sigma, and the accelerometer bias is assumed negligible (Kaiser et
+    al.); a scale is claimed whenever the visual and inertial velocity increments align (``min_alignment``)."""
+    system, g = inertial.system, inertial.g
+    s = system.scale(g, options.scale_solver)
+    alignment = system.alignment(g)
+    result = inertial.result()
+    result.diagnostics["alignment"] = alignment
+    why = _unobservable(inertial, options)
+    if why is None and (not s > 0.0 or alignment < options.min_alignment):
+        why = (f"scale unobservable: visual and inertial motion disagree (cos {alignment:.2f} < "
+               f"{options.min_alignment}); the paper's fallback s = 1 is not claimed")
+    if why:
+        result.status, result.reason = InitStatus.UNOBSERVABLE, why
+        return result
+    result.scale, result.scale_sigma = float(s), float("nan")
+    result.v1, result.diagnostics["v1_method"] = system.initial_velocity(s, g, options.v1_method)
+    result.target = inertial.pre.propagate(g, result.v1, T_BC)
     return result
 
 

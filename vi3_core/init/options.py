@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from vi3_core.init.metric_fit import ImuNoiseModel
+from vi3_core.fit.noise import ImuNoiseModel
 
 GRAVITY_NORM = 9.81
 SCALE_SOLVERS = ("eiv", "tls", "ols")
@@ -17,7 +17,7 @@ class InitOptions:
 
     Scale and initial velocity
         scale_solver: "eiv" (default, beyond the paper: the backbone positions regressed on the IMU kinematics with
-            an error model, ``metric_fit``; s, g, v1, ba and bg are refined jointly from the paper's solution and the
+            an error model, ``vi3_core.fit``; s, g, v1, ba and bg are refined jointly from the paper's solution and the
             scale gets its standard deviation), "tls" (Eq. S and Eq. v0, the paper) or "ols" (ablation: regression-
             diluted). The paper's solvers carry no error model: their scale_sigma is NaN.
         v1_method: for "tls"/"ols": "all_pairs" (Eq. v0, median back-projection, the paper) or "first_pair".
@@ -37,16 +37,16 @@ class InitOptions:
         accel_noise_density, gyro_noise_density, gyro_scale_error, accel_bias_sigma, gyro_bias_sigma,
             scale_rel_floor, accel_bias_walk, gyro_bias_walk: the IMU error model of the "eiv" fit (``ImuNoiseModel``;
             scale_rel_floor is its ``rel_floor``).
-        max_scale_rel_sigma: a scale whose relative 1-sigma exceeds this is not claimed (status unobservable). At 4 %
+        max_scale_sigma: a scale whose relative 1-sigma exceeds this is not claimed (status unobservable). At 4 %
             a claimed scale 10 % off is a 2.5-sigma event (about 1 % of the claims at the limit, fewer below it).
-        max_rotation_deg: a clip whose backbone relative rotations disagree with the bias-corrected gyro by more
+        max_rotation_error: a clip whose backbone relative rotations disagree with the bias-corrected gyro by more
             than this (worst frame pair, degrees) is a backbone failure: status rejected, before any scale.
         min_accel_rms: m/s^2, RMS of the gravity-free body acceleration seen by the velocity increments;
             below it scale is unobservable (hover, constant velocity, pure rotation, stationary).
         min_alignment: for "tls"/"ols": minimum cosine between visual and inertial velocity increments.
         min_parallax: minimum ratio of the visual baseline to the median scene depth (scale-free).
     Data validation (status "rejected")
-        max_imu_gap_s: largest allowed gap between consecutive IMU samples inside the clip.
+        max_imu_gap: largest allowed gap between consecutive IMU samples inside the clip.
         min_samples_per_interval: IMU samples needed between consecutive frames.
     """
 
@@ -67,12 +67,12 @@ class InitOptions:
     scale_rel_floor: float = ImuNoiseModel.rel_floor
     accel_bias_walk: float = ImuNoiseModel.accel_bias_walk
     gyro_bias_walk: float = ImuNoiseModel.gyro_bias_walk
-    max_scale_rel_sigma: float = 0.04
-    max_rotation_deg: float = 2.0
+    max_scale_sigma: float = 0.04
+    max_rotation_error: float = 2.0
     min_accel_rms: float = 0.15
     min_alignment: float = 0.3
     min_parallax: float = 0.01
-    max_imu_gap_s: float = 0.05
+    max_imu_gap: float = 0.05
     min_samples_per_interval: int = 2
     gravity_norm: float = GRAVITY_NORM
 
@@ -83,8 +83,8 @@ class InitOptions:
             raise ValueError(f"v1_method must be 'all_pairs' or 'first_pair', got {self.v1_method!r}")
         if self.fp_max_iters < 1 or self.bg_refine_iters < 0:
             raise ValueError("fp_max_iters must be >= 1 and bg_refine_iters >= 0")
-        if not (self.max_scale_rel_sigma > 0 and self.max_rotation_deg > 0):
-            raise ValueError("max_scale_rel_sigma and max_rotation_deg must be > 0")
+        if not (self.max_scale_sigma > 0 and self.max_rotation_error > 0):
+            raise ValueError("max_scale_sigma and max_rotation_error must be > 0")
         _ = self.noise_model  # validates the error model's values
 
     @property

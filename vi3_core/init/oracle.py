@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 
 from vi3_core.errors import DataError
+from vi3_core.fit.position import fit_positions
 from vi3_core.init import validate
 from vi3_core.init.initializer import initialise_clip
 from vi3_core.init.options import InitOptions
-from vi3_core.init.position_fit import fit_positions
 from vi3_core.preintegration import preintegrate
 from vi3_core.types import Clip, Geometry, GroundTruth, InitResult, InitStatus
 

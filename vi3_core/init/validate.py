@@ -35,10 +35,10 @@ def check_imu(imu: ImuSamples, stamps: np.ndarray, options: InitOptions) -> str 
         return (f"IMU covers [{imu.t[0]:.6f}, {imu.t[-1]:.6f}] s but the clip spans "
                 f"[{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
     span = (imu.t[1:] > stamps[0]) & (imu.t[:-1] < stamps[-1])
-    if span.any() and dt[span].max() > options.max_imu_gap_s:
+    if span.any() and dt[span].max() > options.max_imu_gap:
         i = int(np.flatnonzero(span)[np.argmax(dt[span])])
-        d = _decimals_apart(dt[i], options.max_imu_gap_s)
-        return f"IMU gap of {dt[i]:.{d}f} s > max {options.max_imu_gap_s:.{d}f} s at t={imu.t[i]:.6f} s"
+        d = _decimals_apart(dt[i], options.max_imu_gap)
+        return f"IMU gap of {dt[i]:.{d}f} s > max {options.max_imu_gap:.{d}f} s at t={imu.t[i]:.6f} s"
     counts = np.diff(np.searchsorted(imu.t, stamps))
     if counts.min() < options.min_samples_per_interval:
         i = int(np.argmin(counts))

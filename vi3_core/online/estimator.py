@@ -4,18 +4,18 @@ on its own), and the chaining of the clips into one continuous odom trajectory.
 Per clip: (1) the clip's own GT-free initialisation runs as always (its data checks, its gyro bias, and its visual
 noise from its own fit); (2) its rotations are checked against the gyro with the stream's bias (a backbone failure
 is rejected before any scale); (3) the clip is fitted with the window (``window.Window``: the clips of the last
-``window_s`` seconds and the marginal prior of the ones before) and rejected, window unchanged, when its residual is
-inconsistent with the window (a chi-square test at ``consistency_p``); (4) its scale, gravity, velocity and biases
-come from that fit, and the scale is claimed only when its relative 1-sigma passes ``max_scale_rel_sigma``. Clips
-join the window whatever their own sigma: evidence accumulates, so gentle motion earns its scale over time. A gap
-in the IMU (or a bridge longer than ``max_bridge_s``), an out-of-order clip, or ``max_rejects`` inconsistent clips
-in a row restart the window (the accelerometer bias survives as a prior, the gyro-bias median and the odom attitude
-survive as they are); a restart clip is claimed only when its own sigma passes.
+``online_window`` seconds and the marginal prior of the ones before) and rejected, window unchanged, when its
+residual is inconsistent with the window (a chi-square test at ``online_consistency_p``); (4) its scale, gravity,
+velocity and biases come from that fit, and the scale is claimed only when its relative 1-sigma passes
+``max_scale_sigma``. Clips join the window whatever their own sigma: evidence accumulates, so gentle motion earns its
+scale over time. A gap in the IMU (or a bridge longer than ``online_max_bridge``), an out-of-order clip, or
+``online_max_rejects`` inconsistent clips in a row restart the window (the accelerometer bias survives as a prior,
+the gyro-bias median and the odom attitude survive as they are); a restart clip is claimed only when its own sigma
+passes.
 
 Every claimed clip is placed in odom through the IMU from the last chained frame with both ends' velocities (the last
 pose without IMU; ``_placement``), levelled with its gravity, yaw kept; a placement whose bridge has no IMU or a
-position 1-sigma above ``max_bridge_sigma_m`` starts a new
-segment of the trajectory (``Trajectory.resets``).
+position 1-sigma above ``online_max_bridge_sigma`` starts a new segment of the trajectory (``Trajectory.resets``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from vi3_core.online.options import OnlineOptions
 from vi3_core.online.window import Member, Window
 from vi3_core.preintegration import preintegrate
 from vi3_core.threads import single_blas_thread
-from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus
+from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus, ScaleFit
 
 
 @dataclass(frozen=True)
@@ -65,13 +65,16 @@ class Placement:
 @dataclass
 class OnlineDecision:
     """What the estimator did with a clip: window size (clips fitted jointly, 0: none) and span (s), whether a marginal
-    prior from earlier clips was used, rejected {name: reason} ("clip": the clip itself), reset reason ("" if none)."""
+    prior from earlier clips was used, rejected {name: reason} ("clip": the clip itself), reset reason ("" if none),
+    and ``own``: the clip's own GT-free initialisation (what the paper's per-clip pipeline with the error model would
+    output; None before the clip was seen)."""
 
     window: int = 0
     span_s: float = 0.0
     prior: bool = False
     rejected: dict[str, str] = field(default_factory=dict)
     reset: str = ""
+    own: InitResult | None = None
 
     def describe(self) -> str:
         parts = [f"window {self.window} clips over {self.span_s:.1f} s; prior: {'yes' if self.prior else 'none'}"]
@@ -107,7 +110,7 @@ class OnlineEstimator:
             raise ValueError("the online window needs scale_solver 'eiv' (its error model); the paper's solvers run "
                              "on independent clips only")
         self.window = Window(noise=self.init_options.noise_model, gravity_norm=self.init_options.gravity_norm,
-                             window_s=self.options.window_s, max_clips=self.options.max_clips)
+                             window_s=self.options.online_window, max_clips=self.options.online_max_clips)
         self.state: OdomState | None = None
         self.trajectory = Trajectory()
         self.last = OnlineDecision()
@@ -156,7 +159,8 @@ class OnlineEstimator:
         T = t1 - float(st.stamps[k])
         if T < 1e-9:
             return Placement(R_k, p_k)
-        why = (f"gap of {T:.2f} s > max_bridge_s {self.options.max_bridge_s} s" if T > self.options.max_bridge_s
+        max_bridge = self.options.online_max_bridge
+        why = (f"gap of {T:.2f} s > online_max_bridge {max_bridge} s" if T > max_bridge
                else self._imu_gap(float(st.stamps[k]), t1))
         if why:
             return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3], f"no bridge over {T:.2f} s: {why}")
@@ -164,17 +168,18 @@ class OnlineEstimator:
         pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, init.bg, init.ba)
         v_a, v_b = R_k.T @ st.v_O[k], pre.R[1] @ init.v1
         d = 0.5 * (v_a + v_b) * T + pre.alpha[1] - 0.5 * pre.beta[1] * T
-        sigma = math.hypot(0.5 * T * math.hypot(st.v_sigma, float(init.diagnostics.get("v1_sigma", 0.0))),
+        v1_sigma = init.fit.v1_sigma if init.fit is not None else 0.0
+        sigma = math.hypot(0.5 * T * math.hypot(st.v_sigma, v1_sigma),
                            self.init_options.noise_model.accel_noise_density * T**1.5 / math.sqrt(12.0))
-        new = (f"bridge of {T:.2f} s has a position 1-sigma of {sigma:.2f} m > max_bridge_sigma_m "
-               f"{self.options.max_bridge_sigma_m}") if sigma > self.options.max_bridge_sigma_m else ""
+        new = (f"bridge of {T:.2f} s has a position 1-sigma of {sigma:.2f} m > online_max_bridge_sigma "
+               f"{self.options.online_max_bridge_sigma}") if sigma > self.options.online_max_bridge_sigma else ""
         return Placement(R_k @ pre.R[1], p_k + R_k @ d, new)
 
     def _filtered_bg(self, t1: float, bg: np.ndarray) -> tuple[np.ndarray, float]:
-        """Median [3] rad/s of the own (rotation-based) gyro-bias estimates of the clips of the last ``bg_window_s``
-        seconds, and its 1-sigma (rad/s, largest axis, from their spread; the median ignores a clip whose rotations
-        failed)."""
-        self._bgs = [(t, b) for t, b in self._bgs if t >= t1 - self.options.bg_window_s] + [(t1, np.asarray(bg))]
+        """Median [3] rad/s of the own (rotation-based) gyro-bias estimates of the clips of the last
+        ``online_bg_window`` seconds, and its 1-sigma (rad/s, largest axis, from their spread; the median ignores a clip
+        whose rotations failed)."""
+        self._bgs = [(t, b) for t, b in self._bgs if t >= t1 - self.options.online_bg_window] + [(t1, np.asarray(bg))]
         bgs = np.array([b for _, b in self._bgs])
         med = np.median(bgs, axis=0)
         spread = 1.4826 * np.median(np.abs(bgs - med), axis=0).max() / math.sqrt(len(bgs)) if len(bgs) > 2 else 0.0
@@ -182,12 +187,9 @@ class OnlineEstimator:
 
     # ---- initialisation -------------------------------------------------------------------------------------
 
-    def _decide(self, result: InitResult, decision: OnlineDecision, free: InitResult) -> InitResult:
-        """Record the decision; the diagnostics keep the clip's own GT-free result beside it (``free_status``,
-        ``free_scale``, ``free_scale_sigma``: what the paper's per-clip pipeline with the error model would output)."""
-        self.last = decision
-        result.diagnostics.update(online=decision.describe(), free_status=free.status.value, free_scale=free.scale,
-                                  free_scale_sigma=free.scale_sigma)
+    def _decide(self, result: InitResult, decision: OnlineDecision, own: InitResult) -> InitResult:
+        """Record the decision (``last``) with the clip's own result beside it."""
+        self.last = replace(decision, own=own)
         return result
 
     def _restart_reason(self, t1: float, t_end: float) -> str:
@@ -198,8 +200,8 @@ class OnlineEstimator:
         if t1 <= last:
             return f"clip out of order (starts at {t1:.3f} s, the previous clip at {last:.3f} s)"
         gap = t1 - float(self.window.members[-1].stamps[-1])
-        if gap > self.options.max_bridge_s:
-            return f"gap of {gap:.2f} s > max_bridge_s {self.options.max_bridge_s} s"
+        if gap > self.options.online_max_bridge:
+            return f"gap of {gap:.2f} s > online_max_bridge {self.options.online_max_bridge} s"
         why = self._imu_gap(first, t_end)
         return f"IMU does not cover the window: {why}" if why else ""
 
@@ -220,20 +222,20 @@ class OnlineEstimator:
         bg, bg_sigma = self._filtered_bg(t1, free.bg)
         worst, i, j = rotation_check(clip.imu, clip.stamps, body_rotations(geometry.T_wc[:, :3, :3], clip.T_BC),
                                      bg).worst()
-        if worst > io.max_rotation_deg:
-            why = rotation_failure(worst, i, j, io.max_rotation_deg) + " (the stream's gyro bias)"
+        if worst > io.max_rotation_error:
+            why = rotation_failure(worst, i, j, io.max_rotation_error) + " (the stream's gyro bias)"
             return self._decide(InitResult(InitStatus.REJECTED, why, bg=bg, diagnostics=dict(free.diagnostics)),
                                 replace(decision, rejected={"clip": why}), free)
-        d = free.diagnostics
-        if not (d["fit_lam"] > 0 and np.isfinite(d["scale_rel_sigma"])):
+        own = free.fit
+        if not (own.lam > 0 and np.isfinite(own.scale_rel_sigma)):
             # Poses that carry no scale (no translation, or motion opposite to the IMU's) would only add noise that
             # the window cannot weigh: the clip stays out, the window goes on.
             why = f"its own poses carry no scale ({free.reason})"
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable: {why}", bg=bg,
-                                           diagnostics=dict(d)), replace(decision, rejected={"clip": why}), free)
+                                           fit=own, diagnostics=dict(free.diagnostics)),
+                                replace(decision, rejected={"clip": why}), free)
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
-                        sigma_v=float(d["sigma_v_model"]), lam=float(d["fit_lam"]), v=np.asarray(d["fit_v1"]),
-                        g=np.asarray(free.g))
+                        sigma_v=own.sigma_v, lam=own.lam, v=np.asarray(own.v1), g=np.asarray(free.g))
         reset = self._restart_reason(t1, t_end)
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)
@@ -246,15 +248,15 @@ class OnlineEstimator:
         chi2 = float(res.chi2[k] + (res.link_chi2[k - 1] if k else 0.0))
         dof = float(res.dof[k] + (res.link_dof[k - 1] if k else 0.0))
         p = float(stats.chi2.sf(chi2, dof)) if (k or sol.priors) else 1.0
-        if p < o.consistency_p:
+        if p < o.online_consistency_p:
             self._rejects += 1
             why = (f"normalised residual {chi2 / dof:.2f} over {dof:.1f} degrees of freedom (p = {p:.1e} < "
-                   f"{o.consistency_p:g}) in a window of {k + 1} clips")
+                   f"{o.online_consistency_p:g}) in a window of {k + 1} clips")
             # A window that has not claimed a scale yet has nothing to defend: the clip that disagrees with it
             # starts a new one (after a hover or a stretch of bad data the new clip is as likely to be right).
-            if self._rejects < o.max_rejects and self._window_claimed:
+            if self._rejects < o.online_max_rejects and self._window_claimed:
                 return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {why}",
-                                               bg=bg, diagnostics=dict(d)),
+                                               bg=bg, fit=own, diagnostics=dict(free.diagnostics)),
                                     replace(decision, rejected={"clip": why}), free)
             reset = (f"{self._rejects} clips in a row inconsistent with the window" if self._window_claimed
                      else f"inconsistent with a window that claimed no scale yet ({why})")
@@ -269,19 +271,21 @@ class OnlineEstimator:
         g_k, v_k = sol.frame_state(k)
         s, rel = float(res.scale[k]), float(res.scale_rel_sigma[k])
         g_sigma, v_sigma = res.state_sigma(k)
-        diag = dict(d, window_clips=k + 1, scale_rel_sigma=rel, window_variance_factor=res.variance_factor,
-                    ba=res.state.ba, v1_sigma=v_sigma, g_sigma_deg=math.degrees(g_sigma))
+        fit = ScaleFit(lam=float(res.state.lam[k]), scale_rel_sigma=rel, v1=v_k, v1_sigma=v_sigma, g_sigma=g_sigma,
+                       sigma_v=own.sigma_v, dof=float(res.dof[k]), variance_factor=res.variance_factor,
+                       converged=res.converged, window_clips=k + 1)
+        diag = dict(free.diagnostics)
         st = res.state
-        if not (s > 0.0 and rel <= io.max_scale_rel_sigma):
-            why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > {io.max_scale_rel_sigma}; "
-                   f"{k + 1} clips over {span:.1f} s)")
-            return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, diagnostics=diag),
-                                decision, free)
+        if not (s > 0.0 and rel <= io.max_scale_sigma):
+            why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > max_scale_sigma "
+                   f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s)")
+            return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, fit=fit,
+                                           diagnostics=diag), decision, free)
         target = preintegrate(clip.imu, clip.stamps, st.bg, st.ba).propagate(g_k, v_k, clip.T_BC)
         self._window_claimed = True
         return self._decide(InitResult(InitStatus.OK, f"ok (online window of {k + 1} clips)", bg=st.bg, g=g_k,
                                        scale=s, scale_sigma=rel * s, ba=st.ba, v1=v_k, gravity_source="online_window",
-                                       target=target, diagnostics=diag), decision, free)
+                                       target=target, fit=fit, diagnostics=diag), decision, free)
 
     # ---- chaining -------------------------------------------------------------------------------------------
 
@@ -302,10 +306,11 @@ class OnlineEstimator:
         if place.new_segment and self.state is not None:  # the segment starts at the clip's first new frame
             last = self.trajectory.stamps[-1] if len(self.trajectory.stamps) else -np.inf
             self.trajectory.resets.append(float(clip.stamps[np.argmax(clip.stamps > last)]))
-        d = init.diagnostics
+        fit = init.fit
         self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg),
-                               np.asarray(init.ba), float(d.get("v1_sigma", 0.0)),
-                               math.radians(float(d.get("g_sigma_deg", 0.0))))
+                               np.asarray(init.ba), fit.v1_sigma if fit is not None else 0.0,
+                               fit.g_sigma if fit is not None else 0.0)
+
         chained = ChainedClip(self.state.stamps, T_OB, v_O)
         self.trajectory.extend(chained)
         return chained

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vi3_core import so3
-from vi3_core.init.metric_fit import ImuNoiseModel
+from vi3_core.fit.noise import ImuNoiseModel
 from vi3_core.online.estimator import OdomState
 from vi3_core.preintegration import Grid, preintegrate
 from vi3_core.types import ImuSamples

@@ -4,9 +4,9 @@ the paper, which fits every clip on its own).
 Over one 0.75 s clip a constant acceleration is nearly indistinguishable from a gravity tilt, and at a 3DFM's noise a
 single clip's scale is rarely determined to a few per cent. Clips linked by continuous IMU share gravity and the
 biases, and their velocities are tied through the IMU, so a clip flown at nearly constant velocity still gets its
-scale from a velocity that earlier, better excited clips fixed. ``metric_fit.MetricFit`` solves the window (one
+scale from a velocity that earlier, better excited clips fixed. ``vi3_core.fit.MetricFit`` solves the window (one
 scale and first-frame velocity per clip, each clip's visual noise from its own fit); clips that fall out of it are
-marginalised (``MetricFit.marginalise``) into a Gaussian prior on gravity, the biases and the velocity at the first
+marginalised (``vi3_core.fit.marginalise``) into a Gaussian prior on gravity, the biases and the velocity at the first
 clip that stays, so evidence accumulates instead of expiring with the window.
 """
 
@@ -16,7 +16,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vi3_core.init.metric_fit import FitClip, FitResult, GaussianPrior, ImuNoiseModel, MetricFit, fit_stamps
+from vi3_core.fit import (
+    FitClip,
+    FitResult,
+    GaussianPrior,
+    ImuNoiseModel,
+    MetricFit,
+    PriorLayout,
+    fit_stamps,
+    marginalise,
+)
 from vi3_core.preintegration import preintegrate
 from vi3_core.types import ImuSamples
 
@@ -75,9 +84,10 @@ class Window:
             mean, cov = self.ba
             w, V = np.linalg.eigh(0.5 * (cov + cov.T))
             cov = (V * np.maximum(w, BA_FLOOR**2)) @ V.T + ba_widen * np.eye(3)
-            sqrt_info = np.zeros((3, 12))
-            sqrt_info[:, 3:6] = np.linalg.cholesky(np.linalg.inv(cov)).T
-            self.prior = GaussianPrior(np.concatenate([np.zeros(3), mean, np.zeros(6)]), sqrt_info, np.zeros(3))
+            sqrt_info = np.zeros((3, PriorLayout.n))
+            sqrt_info[:, PriorLayout.ba] = np.linalg.cholesky(np.linalg.inv(cov)).T
+            center = PriorLayout.vector(np.zeros(3), mean, np.zeros(3), np.zeros(3))
+            self.prior = GaussianPrior(center, sqrt_info, np.zeros(3))
 
     def solve(self, new: Member, imu: ImuSamples, bg: np.ndarray, bg_sigma: float, T_BC: np.ndarray) -> Solution:
         """Fit the members and ``new`` (last) with the prior; ``imu`` must cover them all. The starting point is each
@@ -108,10 +118,11 @@ class Window:
         drop = sum(1 for m in sol.members[:-1] if float(m.stamps[0]) < t_new - self.window_s)
         drop = max(drop, len(sol.members) - (self.max_clips - 1))
         mean, cov = sol.result.marginal(len(sol.members) - 1)
-        self.ba = (mean[3:6], cov[3:6, 3:6])
+        self.ba = (mean[PriorLayout.ba], cov[PriorLayout.ba, PriorLayout.ba])
         self.members = sol.members[drop:]
         if drop > 0:
-            self.prior = sol.fit.marginalise(sol.result, drop, sol.priors)
+            self.prior = marginalise(sol.fit, sol.result, drop, sol.priors)
+
 
 
 __all__ = ["Member", "Solution", "Window"]

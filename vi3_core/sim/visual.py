@@ -16,7 +16,7 @@ from vi3_core import so3
 from vi3_core.sim.euroc import CAMERA_RATE_HZ, IMU_RATE_HZ, T_BS_CAM0
 from vi3_core.sim.imu import EUROC_NOISE, ImuNoise, default_vibration, draw_accel_bias, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
-from vi3_core.types import Geometry, ImuSamples
+from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Geometry, ImuSamples
 
 
 @dataclass(frozen=True)
@@ -79,8 +79,9 @@ class InitCase:
     T_B1Bi: np.ndarray
 
 
-def make_init_case(seed: int, *, kind: str = "drone", motion: str = "medium", n: int = 8, stride: int = 2,
-                   scale: float | None = None, pose_noise: PoseNoise | None = None, imu_noise: ImuNoise = EUROC_NOISE,
+def make_init_case(seed: int, *, kind: str = "drone", motion: str = "medium", n: int = CLIP_LENGTH,
+                   stride: int = CLIP_STRIDE, scale: float | None = None, pose_noise: PoseNoise | None = None,
+                   imu_noise: ImuNoise = EUROC_NOISE,
                    accel_bias: bool = True, bg_sigma: float = 0.02, depth_m: float = 3.0,
                    with_orientation: bool = False) -> InitCase:
     """A clip of n frames at ``stride`` x 20 Hz with 200 Hz IMU, EuRoC extrinsics and noise.

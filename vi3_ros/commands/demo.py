@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         return rc
     print(f"   replay took {time.perf_counter() - t0:.1f} s")
 
-    mode = ["--mode", "ttr", "--steps", str(args.ttr_steps)] if args.ttr_steps > 0 else ["--mode", "init"]
+    mode = ["--mode", "ttr", "--param", f"ttr_steps={args.ttr_steps}"] if args.ttr_steps > 0 else ["--mode", "init"]
     t0 = _step(f"2/2 evaluate {eval_input} against ground truth ({' '.join(mode)}, paper clips: start/middle/end)")
     rc = cli.main(["eval", str(eval_input), "--backbone", args.backbone, *mode, "--clips", "paper", "--plot", str(png),
                    "--json-out", str(report_json), "--export-tum", str(tum_dir)])

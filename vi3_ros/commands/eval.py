@@ -57,25 +57,30 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "stamp, so a run is repeatable); default 0")
     p.add_argument("--checkpoint", default=None, help="backbone checkpoint path (real 3DFMs)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
-    p.add_argument("--mode", choices=MODES, default="init",
-                   help="anchoring mode of the VI3 column; cond/ttr also report the fast init (default: init)")
+    p.add_argument("--mode", choices=MODES, default=None,
+                   help="anchoring mode of the VI3 column (parameter mode); cond/ttr also report the fast init "
+                        "(default: init)")
     p.add_argument("--init", choices=("vi3", "gt"), default="vi3", dest="init_source",
                    help="vi3: GT-free initialisation (default); gt: oracle init from ground truth")
     p.add_argument("--clips", choices=("paper", "sliding"), default=None,
-                   help="paper: start/middle/end clips; sliding: every --hop frames (default: sliding when chaining, "
+                   help="paper: start/middle/end clips; sliding: every hop frames (parameter hop; default: sliding "
+                        "when chaining, "
                         "paper with --independent, --init gt or --ablate)")
-    p.add_argument("--n", type=int, default=8, help="frames per clip (default 8)")
-    p.add_argument("--stride", type=int, default=2, help="frame stride within a clip (default 2)")
-    p.add_argument("--hop", type=int, default=None, help="frames between sliding clips (default n*stride)")
     p.add_argument("--max-clips", type=_positive, default=None,
                    help="evaluate at most this many clips (evenly spread; >= 1)")
-    p.add_argument("--steps", type=int, default=None, help="TTR steps (default: the paper's 160)")
     p.add_argument("--ablate", action="store_true",
                    help="initialisation ablations: TLS vs OLS, all-pairs vs first-pair v1, gravity consensus on/off "
                         "(each variant in init mode with the GT-free init; --mode and --init are ignored)")
     p.add_argument("--independent", action="store_true",
-                   help="every clip on its own, as in the paper (default: the metric state is carried across clips "
-                        "and the clips are chained into one odom trajectory; always independent with --init gt)")
+                   help="every clip on its own, as in the paper (parameter online false; default: the metric state is "
+                        "carried across clips and the clips are chained into one odom trajectory; always independent "
+                        "with --init gt)")
+    p.add_argument("--params-file", default=None, metavar="YAML",
+                   help="ROS 2 parameter YAML of the node (e.g. config/euroc.yaml): its clip, window, error-model and "
+                        "TTR settings (clip_length, stride, hop, online_*, max_scale_sigma, ttr_steps, ...)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="any node parameter, as in vi3 replay (e.g. max_scale_sigma=0.05, hop=8, ttr_steps=40); "
+                        "overrides --params-file")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p.add_argument("--json-out", default=None, metavar="FILE", help="also write the JSON object to FILE")
     p.add_argument("--plot", default=None, metavar="PNG",
@@ -117,7 +122,7 @@ class Evaluated:
 
 
 def _chained(args: argparse.Namespace) -> bool:
-    return not (args.ablate or args.independent or args.init_source == "gt")
+    return not (args.ablate or args.init_source == "gt") and args.settings.stream.online
 
 
 def _open(args: argparse.Namespace, path: str):
@@ -263,16 +268,19 @@ def _prepare(args: argparse.Namespace) -> tuple:
     """Options, backbone (with --ray, the function that builds it on the workers), one ``Evaluated`` per input
     (opened and checked: GT, calibration, enough frames; the sequence itself kept only for a single input evaluated
     here) and the output paths, all checked before any clip runs."""
-    from vi3_core.anchor import AnchorOptions
     from vi3_core.errors import DataError, Vi3Error
     from vi3_core.eval import runner
+    from vi3_ros.params import settings_from_cli
 
+    args.settings = settings = settings_from_cli(args.params_file, args.param, {
+        "mode": args.mode, "online": False if args.independent else None})
     _check_ray_args(args)
     clips = args.clips or ("sliding" if _chained(args) else "paper")
+    buf = settings.buffer
     options = runner.EvalOptions(
-        mode=args.mode, init_source=args.init_source, clips=clips, n=args.n, stride=args.stride,
-        hop=args.hop, max_clips=args.max_clips, progress=not args.no_progress,
-        anchor_options=AnchorOptions(steps=args.steps) if args.steps is not None else None)
+        mode=settings.stream.mode, init_source=args.init_source, clips=clips, clip_length=buf.clip_length,
+        stride=buf.stride, hop=buf.hop, max_clips=args.max_clips, progress=not args.no_progress,
+        anchor_options=settings.anchor, init_options=settings.init, online_options=settings.online)
     check_outputs(args)
     runs, problems = [], []
     keep = len(args.input) == 1 and args.ray is None
@@ -334,7 +342,7 @@ def _report(args: argparse.Namespace, item: Evaluated) -> None:
         item.text = report.format_ablation(summaries)
         item.evals = next(iter(item.variants.values()))
         return
-    summary = report.summarise(item.evals, mode=args.mode, init_source=args.init_source, **meta)
+    summary = report.summarise(item.evals, mode=args.settings.stream.mode, init_source=args.init_source, **meta)
     item.obj = {**item.obj, **summary, "input": item.path}
     if item.online is not None:
         item.obj["chained"] = report.chained_summary(item.online)
@@ -422,7 +430,8 @@ def _combine(args: argparse.Namespace, runs: list[Evaluated]) -> tuple[dict, str
         text += "\n\n" + report.format_overview(obj["sequences"])
         evals = [e for r in runs for e in r.evals]
         done = sum(bool(r.evals) for r in runs)
-        pooled = report.summarise(evals, mode=args.mode, init_source=args.init_source, backbone=args.backbone,
+        pooled = report.summarise(evals, mode=args.settings.stream.mode, init_source=args.init_source,
+                                  backbone=args.backbone,
                                   sequence=f"pooled ({done} of {len(runs)} sequences)")
         text += "\n\n" + report.format_tables(pooled)
         if _chained(args):
@@ -443,7 +452,7 @@ def _write_outputs(args: argparse.Namespace, runs: list[Evaluated], outputs: dic
         try:
             if r.name in outputs["plots"]:
                 png = plot.save_plot(outputs["plots"][r.name], r.evals,
-                                     title=f"{r.name}: {args.backbone}, {args.mode}")
+                                     title=f"{r.name}: {args.backbone}, {args.settings.stream.mode}")
                 print(f"plot: {png}", file=sys.stderr)
             if r.name in outputs["tum"]:
                 out = outputs["tum"][r.name]

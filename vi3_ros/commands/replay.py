@@ -37,16 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def values_from_args(args: argparse.Namespace) -> dict:
-    """Parameter values: defaults < --params-file < --param < the named options, checked once by ``resolve``."""
-    from vi3_ros.params import load_yaml, parse_assignment, resolve  # the options' modules import torch
+def settings_from_args(args: argparse.Namespace):
+    """The replay's ``Settings``: defaults < --params-file < --param < the named options, checked once."""
+    from vi3_ros.params import settings_from_cli  # the options' modules import torch
 
-    overrides = load_yaml(args.params_file) if args.params_file else {}
-    overrides.update(parse_assignment(a) for a in args.param)
-    named = {"backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device,
-             "backbone_delay": args.backbone_delay}
-    overrides.update({k: v for k, v in named.items() if v is not None})
-    return resolve(overrides)
+    return settings_from_cli(args.params_file, args.param, {
+        "backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device,
+        "backbone_delay": args.backbone_delay})
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
             from vi3_core.eval.report import to_json
             from vi3_ros.replay import kept_text, replay
 
-            summary = replay(args.input, args.output, values=values_from_args(args), copy_inputs=args.copy_inputs,
+            summary = replay(args.input, args.output, settings=settings_from_args(args), copy_inputs=args.copy_inputs,
                              progress=not args.no_progress and sys.stderr.isatty(), force=args.force,
                              image_topic=args.image_topic, imu_topic=args.imu_topic, realtime=args.realtime)
         except KeyboardInterrupt as exc:  # a ReplayInterrupted says what was kept; before the replay, nothing

@@ -1,0 +1,142 @@
+"""``StreamEstimator``: the one per-clip loop of a camera + IMU stream, shared by the node, replay and ``vi3 eval``.
+
+Per clip: the initialisation's data checks (a clip they reject costs no inference), the backbone and the anchoring
+mode (``vi3_core.anchor.anchor``) with the stream's initialisation, then the clip's place in the odom trajectory.
+The initialisation is the online window's (``OnlineEstimator``: gravity, biases and velocity carried across clips,
+the clips chained into odom) with ``online``; every clip on its own as in the paper without it; or, for evaluation,
+the oracle from the clip's ground truth. ``process`` returns everything the clip changed as a ``ClipOutcome``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from vi3_core.anchor import MODES, AnchorOptions, anchor, check_mode
+from vi3_core.backbones.base import Backbone
+from vi3_core.init import InitOptions, oracle_init, validate
+from vi3_core.online.chain import ChainedClip, Trajectory
+from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator
+from vi3_core.online.options import OnlineOptions
+from vi3_core.types import AnchorResult, Clip, InitResult, InitStatus
+
+INIT_SOURCES = ("vi3", "gt")
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    """online: carry the metric state across clips (the online window and the odom chaining); false: every clip on
+    its own (the paper). mode: the anchoring mode (init | cond | ttr). init_source: "vi3", the GT-free
+    initialisation, or "gt", the oracle from the clip's ground truth (evaluation only: every clip on its own)."""
+
+    online: bool = True
+    mode: str = "init"
+    init_source: str = "vi3"
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}; got {self.mode!r}")
+        if self.init_source not in INIT_SOURCES:
+            raise ValueError(f"init_source must be one of {', '.join(INIT_SOURCES)}; got {self.init_source!r}")
+        if self.online and self.init_source != "vi3":
+            raise ValueError("the online window is GT-free: init_source 'gt' needs online false")
+
+
+@dataclass
+class ClipOutcome:
+    """What one clip changed.
+
+    init: the clip's initialisation (the window's with ``online``), also when the backbone did not run; result: the
+    final ``AnchorResult`` (None when the data checks rejected the clip before the backbone); fast: the init-mode
+    result that ``cond``/``ttr`` refine (None in ``init`` mode or when the init is not ok); decision: the online
+    window's decision, with the clip's own initialisation (None without ``online``); chained: the clip placed in odom
+    (None unless it was chained); state: the odom state after the clip, where IMU-rate propagation starts (None
+    before the first chained clip); segment: the odom segment the trajectory is in (0: the first)."""
+
+    init: InitResult
+    result: AnchorResult | None = None
+    fast: AnchorResult | None = None
+    decision: OnlineDecision | None = None
+    chained: ChainedClip | None = None
+    state: OdomState | None = None
+    segment: int = 0
+
+    @property
+    def mode(self) -> str:
+        """The anchoring mode that ran ("none" when the init is not ok or the backbone did not run)."""
+        return self.result.mode if self.result is not None else "none"
+
+
+class StreamEstimator:
+    """The clips of one stream, in time order, through the backbone, the initialisation and the odom chaining.
+
+    ``process(clip)`` -> ``ClipOutcome``; ``trajectory`` is the chained odom trajectory so far. Deterministic: the
+    same clips give the same outcomes. Not thread-safe: one caller (the node's worker thread) processes the clips."""
+
+    def __init__(self, backbone: Backbone, *, options: StreamOptions | None = None,
+                 online: OnlineOptions | None = None, init: InitOptions | None = None,
+                 anchor: AnchorOptions | None = None) -> None:
+        self.options = options or StreamOptions()
+        check_mode(backbone, self.options.mode)  # an unsupported mode fails here, not once per clip
+        self.backbone = backbone
+        self.online_options = online or OnlineOptions()
+        self.init_options = init or InitOptions()
+        self.anchor_options = anchor or AnchorOptions()
+        self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options) \
+            if self.options.online else None
+
+    @property
+    def trajectory(self) -> Trajectory:
+        """The chained odom trajectory (empty without ``online``)."""
+        return self.window.trajectory if self.window is not None else Trajectory()
+
+    @property
+    def decision(self) -> OnlineDecision | None:
+        """The online window's decision on the latest clip it initialised (None without ``online``)."""
+        return self.window.last if self.window is not None else None
+
+    def process(self, clip: Clip, *, on_init: Callable[[AnchorResult], None] | None = None,
+                before_backbone: Callable[[], bool] | None = None) -> ClipOutcome | None:
+        """One clip (undistorted, with the IMU covering it and, with ``online``, the IMU history back to
+        ``online_max_bridge``). ``on_init`` receives the fast init-mode result of an ok clip before ``cond``/``ttr``
+        refine it (the node publishes it at once). ``before_backbone`` is called once the clip passed the data
+        checks; when it returns False the clip is abandoned (None: nothing changed). Bad data never raises: it is the
+        outcome's ``init`` status."""
+        reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
+        if reason is not None:
+            init = InitResult(InitStatus.REJECTED, reason)
+            decision = OnlineDecision(rejected={"clip": reason}, own=init) if self.window is not None else None
+            return ClipOutcome(init, decision=decision, state=self._state(), segment=self._segment())
+        if before_backbone is not None and not before_backbone():
+            return None
+        fast: list[AnchorResult] = []
+
+        def take_fast(result: AnchorResult) -> None:
+            if self.options.mode != "init" and result.init.ok:
+                fast.append(result)
+                if on_init is not None:
+                    on_init(result)
+
+        result = anchor(clip, self.backbone, mode=self.options.mode, options=self.anchor_options,
+                        init_options=self.init_options, init=self._initialiser(clip), on_init=take_fast)
+        window = self.window
+        chained = window.update(clip, result) if window is not None else None
+        return ClipOutcome(result.init, result, fast[0] if fast else None,
+                           window.last if window is not None else None, chained, self._state(), self._segment())
+
+    def _initialiser(self, clip: Clip) -> Callable | None:
+        """The initialisation ``anchor`` runs on the base geometry (None: its own per-clip GT-free one)."""
+        if self.options.init_source == "gt":
+            return lambda base: oracle_init(clip, base, options=self.init_options)
+        if self.window is not None:
+            return lambda base: self.window.initialise(clip, base)
+        return None
+
+    def _state(self) -> OdomState | None:
+        return self.window.state if self.window is not None else None
+
+    def _segment(self) -> int:
+        return len(self.trajectory.resets)
+
+
+__all__ = ["INIT_SOURCES", "ClipOutcome", "StreamEstimator", "StreamOptions"]

@@ -1,0 +1,175 @@
+"""What a stream publishes: the output topics, the sink that carries them (rclpy publishers in the node, an MCAP
+writer in replay), and the messages of one clip's outcome: poses, depth, points and the clip TF, ``~/odom``,
+``~/path`` and the odom TF, and the clip's ``~/status``.
+
+Frames (see docs/node.md): poses and points are in ``clip_frame``, the clip's first camera (OpenCV optical axes,
+metric), or in ``odom_frame`` with ``outputs_in_odom``; depth images in ``camera_frame``; TF ``camera_frame ->
+clip_frame`` at the clip's last frame stamp; ``~/odom`` and its TF ``odom_frame -> base_frame``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from msg_adapters.diagnostics import DiagStatus, Level
+from msg_adapters.image import depth_to_image
+from msg_adapters.pointcloud import point_cloud2
+from msg_adapters.poses import odometry, path, pose_array, tf_message
+from msg_adapters.types import MessageTypes
+from vi3_core.camera import backproject
+from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
+from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
+from vi3_ros.clip_buffer import RawClip
+from vi3_ros.settings import Settings
+
+
+@dataclass(frozen=True)
+class Output:
+    """topic: relative to the node (``~/``) or absolute; msgtype: ROS 2 type name."""
+
+    topic: str
+    msgtype: str
+
+
+OUTPUTS: dict[str, Output] = {
+    "poses": Output("~/poses", "geometry_msgs/msg/PoseArray"),
+    "depth": Output("~/depth", "sensor_msgs/msg/Image"),
+    "points": Output("~/points", "sensor_msgs/msg/PointCloud2"),
+    "init_poses": Output("~/init/poses", "geometry_msgs/msg/PoseArray"),
+    "init_depth": Output("~/init/depth", "sensor_msgs/msg/Image"),
+    "init_points": Output("~/init/points", "sensor_msgs/msg/PointCloud2"),
+    "status": Output("~/status", "diagnostic_msgs/msg/DiagnosticArray"),
+    "diagnostics": Output("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+    "tf": Output("/tf", "tf2_msgs/msg/TFMessage"),
+    "odom": Output("~/odom", "nav_msgs/msg/Odometry"),
+    "path": Output("~/path", "nav_msgs/msg/Path"),
+    "odom_imu": Output("~/odom/imu", "nav_msgs/msg/Odometry"),
+}
+STATUS_NAME = "vi3: clip"
+DIAG_NAME = "vi3: pipeline"
+
+
+class OutputSink(Protocol):
+    """Where the messages of a clip go. ``key`` is a key of ``OUTPUTS``; ``stamp_ns`` the message's header stamp
+    (camera time), which replay uses as the log time."""
+
+    def publish(self, key: str, msg: Any, stamp_ns: int) -> None: ...
+
+
+def cloud_points(geometry: Geometry, frames: np.ndarray, *, stride: int, conf_quantile: float,
+                 max_depth: float) -> tuple[np.ndarray, np.ndarray]:
+    """Back-projected depth pixels of ``frames`` in the clip frame (the first camera), metres.
+
+    Keeps every ``stride``-th pixel in each direction whose depth is finite, in (0, max_depth], and whose
+    confidence is at least the ``conf_quantile`` quantile of the clip's confidences. Returns points [N,3] float32
+    and confidence [N] float32. Vectorised over all selected frames."""
+    P, d = backproject(geometry.depth[frames], geometry.K[frames], geometry.T_wc[frames], stride=stride)
+    conf = geometry.conf[frames, ::stride, ::stride].astype(np.float64).reshape(len(P), -1)
+    finite_conf = geometry.conf[np.isfinite(geometry.conf)]
+    thr = np.quantile(finite_conf, conf_quantile) if conf_quantile > 0 and finite_conf.size else -np.inf
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(d) & (d > 0) & (d <= max_depth) & (conf >= thr)
+    return P[keep].astype(np.float32), conf[keep].astype(np.float32)
+
+
+class ClipPublisher:
+    """The messages of one stream's clips, built from its ``settings`` and handed to ``publish(key, msg, stamp_ns)``
+    (the Pipeline's, which drops them while it is closing). Used from the worker thread only."""
+
+    def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None]) -> None:
+        self.settings, self.types, self._publish = settings, types, publish
+        self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
+
+    def geometry(self, raw: RawClip, geometry: Geometry, *, prefix: str, T_OC1: np.ndarray | None = None) -> None:
+        """Poses, depth, points (and the clip TF) of a result; ``prefix`` "init_" for the fast result that cond/ttr
+        refine; with ``T_OC1`` [4,4] (the clip's first camera in odom) poses and points are in ``odom_frame``."""
+        fr, out, types = self.settings.frames, self.settings.outputs, self.types
+        stamp = int(raw.stamps_ns[-1])
+        frame = fr.clip_frame if T_OC1 is None else fr.odom_frame
+        T_wc = geometry.T_wc if T_OC1 is None else T_OC1 @ geometry.T_wc
+        self._publish(prefix + "poses", pose_array(T_wc, stamp_ns=stamp, frame_id=frame, types=types), stamp)
+        frames = np.arange(geometry.n) if out.depth_frames == "all" else np.array([geometry.n - 1])
+        for i in frames:
+            s = int(raw.stamps_ns[i])
+            self._publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s, frame_id=fr.camera_frame,
+                                                           types=types), s)
+        frames = np.arange(geometry.n) if out.points_frames == "all" else np.array([geometry.n - 1])
+        pts, conf = cloud_points(geometry, frames, stride=out.points_stride, conf_quantile=out.points_conf_quantile,
+                                 max_depth=out.points_max_depth)
+        if T_OC1 is not None:
+            pts = (pts.astype(np.float64) @ T_OC1[:3, :3].T + T_OC1[:3, 3]).astype(np.float32)
+        self._publish(prefix + "points", point_cloud2(pts, confidence=conf, stamp_ns=stamp, frame_id=frame,
+                                                      types=types), stamp)
+        if fr.publish_tf and not prefix:
+            T_last_clip = np.linalg.inv(geometry.T_wc[-1])
+            self._publish("tf", tf_message([(T_last_clip, fr.camera_frame, fr.clip_frame, stamp)], types=types),
+                          stamp)
+
+    def odom(self, raw: RawClip, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> None:
+        """~/odom (pose and twist of base_frame at the clip's last frame), ~/path (the latest ``path_max_poses``
+        poses of the odom trajectory) and, with ``publish_odom_tf``, TF odom_frame -> base_frame."""
+        fr, types = self.settings.frames, self.types
+        stamp = int(raw.stamps_ns[-1])
+        chained = outcome.chained
+        T = chained.T_OB[-1]
+        gyro = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)])
+        self._publish("odom", odometry(T, T[:3, :3].T @ chained.v_O[-1], gyro - outcome.state.bg, stamp_ns=stamp,
+                                       frame_id=fr.odom_frame, child_frame_id=fr.base_frame, types=types), stamp)
+        keep = slice(max(len(trajectory.stamps) - self.settings.outputs.path_max_poses, 0), None)
+        # The header stamps of the frames (exact ns), kept for the poses the path still shows.
+        self._path_ns.update(zip(clip.stamps.tolist(), raw.stamps_ns.tolist()))
+        self._path_ns = {t: self._path_ns[t] for t in trajectory.stamps[keep].tolist()}
+        stamps_ns = list(self._path_ns.values())
+        self._publish("path", path(trajectory.T_OB[keep], stamp_ns=stamp, frame_id=fr.odom_frame, types=types,
+                                   stamps_ns=stamps_ns), stamp)
+        if fr.publish_odom_tf:
+            self._publish("tf", tf_message([(T, fr.odom_frame, fr.base_frame, stamp)], types=types), stamp)
+
+
+def clip_status(raw: RawClip, init: InitResult, kind: str, latency_s: float, *, drops: str, clip_frame: str,
+                result: AnchorResult | None = None, decision: OnlineDecision | None = None,
+                trajectory: Trajectory | None = None) -> DiagStatus:
+    """The ``~/status`` entry of one result: ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
+    wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
+    ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), and with the online
+    window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment."""
+    level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
+    if drops and level is Level.OK:
+        level = Level.WARN
+    reason = result_reason(init, result)
+    alpha = result.alpha if result is not None else float("nan")
+    rel = init.fit.scale_rel_sigma if init.fit is not None else float("nan")
+    values = {"clip": raw.index, "result": kind, "init_status": init.status.value, "reason": reason,
+              "scale": f"{init.scale:.6g}", "scale_sigma": f"{init.scale_sigma:.3g}", "scale_rel_sigma": f"{rel:.3g}",
+              "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
+              "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
+              "bg": _vec(init.bg), "ba": _vec(init.ba), "t_first": f"{raw.stamps[0]:.9f}",
+              "t_last": f"{raw.stamps[-1]:.9f}", "input_drops": drops, "latency_ms": f"{latency_s * 1e3:.1f}"}
+    if decision is not None and trajectory is not None:
+        values["online"] = decision.describe()
+        values["odom_segment"] = len(trajectory.resets)  # 0: the first; each reset starts one (its first frame)
+        if trajectory.resets:
+            values["odom_segment_start"] = f"{trajectory.resets[-1]:.9f}"
+    if result is not None and kind != "init":
+        values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
+                       for k, a in sorted(result.losses.items()) if np.asarray(a).size})
+    if result is not None:
+        values.update({f"timing_{k}": f"{s:.4g}" for k, s in sorted(result.timings.items())})  # units in k
+    return DiagStatus(level, STATUS_NAME, f"{kind}: {reason}", clip_frame, values)
+
+
+def result_reason(init: InitResult, result: AnchorResult | None) -> str:
+    """Why a clip's result is what it is: the initialisation's reason, or the anchoring's status when it is ok."""
+    return init.reason if not init.ok else (result.status or "ok")
+
+
+def _vec(v: np.ndarray) -> str:
+    return " ".join(f"{x:.6g}" for x in np.asarray(v, dtype=np.float64).reshape(-1))
+
+
+__all__ = ["DIAG_NAME", "OUTPUTS", "STATUS_NAME", "ClipPublisher", "Output", "OutputSink", "clip_status",
+           "cloud_points", "result_reason"]

@@ -1,0 +1,109 @@
+"""The node's settings, typed: one options dataclass per concern, each field named as its ROS parameter
+(``vi3_ros.params`` declares them), and ``Settings``, the groups together, which the node, replay and the CLI hand to
+the ``Pipeline``. The core's options (``StreamOptions``, ``OnlineOptions``, ``InitOptions``, ``AnchorOptions``) and the
+clip buffer's are groups too; the ones here are the ROS shell's own."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from vi3_core.anchor.options import AnchorOptions
+from vi3_core.init.options import InitOptions
+from vi3_core.online.options import OnlineOptions
+from vi3_core.online.stream import StreamOptions
+from vi3_ros.clip_buffer import ClipBufferOptions
+
+
+@dataclass(frozen=True)
+class InputOptions:
+    """Where the stream comes from: topics, image transport, and the calibration's sources."""
+
+    image_topic: str = "/cam0/image_raw"
+    image_transport: str = "auto"
+    imu_topic: str = "/imu0"
+    camera_info_topic: str = ""
+    calib_file: str = ""
+    use_tf_static: bool = False
+
+
+@dataclass(frozen=True)
+class FrameOptions:
+    """The frame ids of the outputs and of the TF lookups, and which transforms are published."""
+
+    clip_frame: str = "vi3_clip"
+    camera_frame: str = "cam0"
+    imu_frame: str = "imu0"
+    publish_tf: bool = False
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
+    publish_odom_tf: bool = False
+    outputs_in_odom: bool = False
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """What is published beyond each clip's poses: ``~/odom/imu`` (Hz, m), ``~/path``, depth and point clouds, and the
+    period (s) of the ``/diagnostics`` summary."""
+
+    imu_odom_rate: float = 200.0
+    imu_odom_max_sigma: float = 1.0
+    path_max_poses: int = 5000
+    depth_frames: str = "last"
+    points_frames: str = "last"
+    points_stride: int = 2
+    points_conf_quantile: float = 0.3
+    points_max_depth: float = 20.0
+    diagnostics_period: float = 1.0
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """The backbone: its name, torch device and checkpoint, the process's torch threads (0: automatic), and a delay
+    (s) added before it on every clip (testing a slower model)."""
+
+    backbone: str = "classical"
+    device: str = "cpu"
+    checkpoint: str = ""
+    threads: int = 0
+    backbone_delay: float = 0.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Every setting of a stream, by group; ``value(name)`` / ``replace(name=value)`` address one by its parameter
+    name (``vi3_ros.params.group_of`` knows its group)."""
+
+    inputs: InputOptions = field(default_factory=InputOptions)
+    frames: FrameOptions = field(default_factory=FrameOptions)
+    outputs: OutputOptions = field(default_factory=OutputOptions)
+    model: ModelOptions = field(default_factory=ModelOptions)
+    buffer: ClipBufferOptions = field(default_factory=ClipBufferOptions)
+    stream: StreamOptions = field(default_factory=StreamOptions)
+    online: OnlineOptions = field(default_factory=OnlineOptions)
+    init: InitOptions = field(default_factory=InitOptions)
+    anchor: AnchorOptions = field(default_factory=AnchorOptions)
+
+    def value(self, name: str) -> Any:
+        """The value of parameter ``name`` (as the options field holds it: ``hop`` None where the parameter says 0)."""
+        return getattr(getattr(self, group_attr(name)), name)
+
+    def replace(self, **changes: Any) -> Settings:
+        """These settings with the parameters in ``changes`` set (values as the options fields take them)."""
+        groups: dict[str, dict[str, Any]] = {}
+        for name, value in changes.items():
+            groups.setdefault(group_attr(name), {})[name] = value
+        return dataclasses.replace(self, **{g: dataclasses.replace(getattr(self, g), **v) for g, v in groups.items()})
+
+
+GROUPS: dict[str, type] = {f.name: f.default_factory for f in dataclasses.fields(Settings)}  # attribute -> class
+_ATTR = {name: attr for attr, cls in GROUPS.items() for name in (f.name for f in dataclasses.fields(cls))}
+
+
+def group_attr(name: str) -> str:
+    """The ``Settings`` attribute of the group that holds the option ``name`` (KeyError when none does)."""
+    return _ATTR[name]
+
+
+__all__ = ["GROUPS", "FrameOptions", "InputOptions", "ModelOptions", "OutputOptions", "Settings", "group_attr"]
