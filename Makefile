@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.vi3-installed
 
-.PHONY: test demo bench lint venv clean
+.PHONY: test test-fast demo bench lint venv clean
 
 $(STAMP): setup.py setup.cfg pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,6 +19,10 @@ lint: $(STAMP)
 
 test: $(STAMP) lint
 	$(PY) -m pytest -q tests
+
+# The unit tests (tests marked slow left out): under a minute on two cores, for everyday work.
+test-fast: $(STAMP) lint
+	$(PY) -m pytest -q -m "not slow" tests
 
 demo: $(STAMP)
 	$(VENV)/bin/vi3 demo

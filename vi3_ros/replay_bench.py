@@ -30,7 +30,7 @@ import numpy as np
 
 from vi3_core.dataset.asl import find_mav0, read_groundtruth
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
-from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
+from vi3_core.dataset.generate import EUROC_CAM0, bench_cache_dir, cached_sequence, generation_tag
 from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.errors import DataError
 from vi3_core.threads import torch_thread_settings
@@ -41,12 +41,12 @@ from vi3_ros.replay import replay
 from vi3_ros.replay_odom import odometry_report, read_odometry
 
 BENCH_SECONDS = 20.0
-CACHE = Path(".cache") / "bench"
+
 
 
 def _default_input(seconds: float) -> tuple[Path, Path, Path]:
     """(rosbag2 MCAP directory, calibration YAML, ASL folder) of the cached sequence of ``seconds``."""
-    asl = cached_sequence(CACHE, seconds=seconds, seed=0, with_depth=False)
+    asl = cached_sequence(bench_cache_dir(), seconds=seconds, seed=0, with_depth=False)
     derived = asl / f"derived_{generation_tag(asl)}"  # a regenerated sequence never meets a stale bag
     derived.mkdir(exist_ok=True)
     bag, mcap, calib = derived / "seq.bag", derived / "mcap", derived / "cam0_sensor.yaml"

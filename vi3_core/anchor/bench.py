@@ -2,22 +2,12 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 from vi3_core.anchor.anchor import anchor
 from vi3_core.anchor.options import AnchorOptions
 from vi3_core.backbones.bench_device import DeviceClock, build_bench_backbone
-from vi3_core.dataset.asl import read_asl
-from vi3_core.dataset.generate import cached_sequence
-from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.dataset.generate import bench_clip
 from vi3_core.init.oracle import oracle_init
 from vi3_core.threads import torch_thread_settings
-
-
-def bench_cache_dir() -> Path:
-    """Where benchmarks keep generated sequences (``VI3_CACHE``, default ``.cache/bench`` in the working dir)."""
-    return Path(os.environ.get("VI3_CACHE", ".cache")) / "bench"
 
 
 def bench_ttr(args) -> dict:
@@ -31,8 +21,7 @@ def bench_ttr(args) -> dict:
     ``threads`` and ``omp_wait_policy``, the torch settings it ran with (``vi3_core.threads.torch_thread_settings``)."""
     steps = args.repeats or 40
     backbone, described = build_bench_backbone(args)  # first: a bad option fails before any data is made
-    seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
-    clip = make_clip(seq, sample_clips(len(seq), mode="paper")[1], with_depth=False)
+    clip = bench_clip()
     clock = DeviceClock(backbone.device)
     # Random weights give geometry the GT-free initialisation rightly rejects, and a step costs the same whatever
     # the weights: with --random-init the TTR target comes from the sequence's ground truth.

@@ -5,11 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from vi3_core.anchor.bench import bench_cache_dir
 from vi3_core.backbones.bench_device import DeviceClock, build_bench_backbone
-from vi3_core.dataset.asl import read_asl
-from vi3_core.dataset.generate import cached_sequence
-from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.dataset.generate import bench_clip
 from vi3_core.threads import torch_thread_settings
 
 
@@ -26,8 +23,7 @@ def bench_backbone(args) -> dict:
     """
     repeats = args.repeats or 5
     backbone, described = build_bench_backbone(args)  # first: a bad option fails before any data is made
-    seq = read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
-    clip = make_clip(seq, sample_clips(len(seq), mode="paper")[1], with_depth=False)
+    clip = bench_clip()
     clock = DeviceClock(backbone.device)
     geometry = backbone.predict(clip.images, clip.K)  # warm-up: imports, allocator, thread pools, kernel choice
     laps = []

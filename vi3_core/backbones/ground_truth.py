@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, ParamGroups, Prediction
+from vi3_core.dataset.sequence import gt_camera_poses
 from vi3_core.errors import DataError
-from vi3_core.eval.metrics import gt_camera_poses
 from vi3_core.sim.visual import PoseNoise, noisy_poses
 from vi3_core.types import Clip
 

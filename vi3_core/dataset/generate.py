@@ -37,13 +37,14 @@ from scipy.spatial.transform import Rotation, RotationSpline
 from vi3_core import so3
 from vi3_core.dataset import asl
 from vi3_core.dataset.calib import CameraCalib, load_calib
+from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.errors import DataError
 from vi3_core.render.raycast import Renderer
 from vi3_core.render.scene import SCENES, Scene, make_scene
 from vi3_core.sim import euroc
 from vi3_core.sim.imu import ImuNoise, ImuSimulator, default_vibration, draw_accel_bias
 from vi3_core.sim.trajectory import MOTIONS, make_trajectory
-from vi3_core.types import ImuSamples
+from vi3_core.types import Clip, ImuSamples
 
 #: EuRoC cam0 (MH_01 ``cam0/sensor.yaml``): intrinsics, radial-tangential distortion, T_BS, 752x480 @ 20 Hz.
 EUROC_CAM0 = CameraCalib(K=euroc.K_cam0(), dist_model="radtan", dist=np.array(euroc.DISTORTION_CAM0),
@@ -364,3 +365,15 @@ def cached_sequence(cache_dir, *, seconds: float | None = 4.0, seed: int = 0, sc
     return generate_sequence(Path(cache_dir) / key, seconds=seconds, seed=seed, scene=scene, motion=motion,
                              accel_bias=accel_bias, imu_noise=imu_noise, with_depth=with_depth,
                              from_euroc=None if from_euroc is None else str(from_euroc), start_s=start_s)
+
+
+def bench_cache_dir() -> Path:
+    """Where benchmarks keep generated sequences (``VI3_CACHE``, default ``.cache/bench`` in the working dir)."""
+    return Path(os.environ.get("VI3_CACHE", ".cache")) / "bench"
+
+
+def bench_clip() -> Clip:
+    """The benchmarks' clip: the middle paper clip (8 frames at stride 2, 752x480) of a generated 3 s sequence,
+    cached in ``bench_cache_dir``, without depth."""
+    seq = asl.read_asl(cached_sequence(bench_cache_dir(), seconds=3.0, seed=0) / "mav0")
+    return make_clip(seq, sample_clips(len(seq), mode="paper")[1], with_depth=False)

@@ -148,6 +148,11 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
                 imu_history=history)
 
 
+def gt_camera_poses(gt: GroundTruth, T_BC: np.ndarray) -> np.ndarray:
+    """GT camera poses [n,4,4] of a clip in its first camera frame: T_WC = T_WB T_BC, re-anchored at frame 0."""
+    return so3.relative_to_first(np.einsum("nij,jk->nik", np.asarray(gt.T_WB, dtype=np.float64), T_BC))
+
+
 def _fitting_frame(seq: Sequence, i: int) -> np.ndarray:
     """Raw frame ``i``, or CalibrationError naming it when it does not fit the calibration (never stretched)."""
     image = seq.image(i)

@@ -183,11 +183,6 @@ def geometry_metrics(T_pred: np.ndarray, T_gt: np.ndarray, depth_pred: np.ndarra
         scale_depth=scale_depth(depth_pred, depth_gt) if has_depth else nan)
 
 
-def gt_camera_poses(gt: GroundTruth, T_BC: np.ndarray) -> np.ndarray:
-    """GT camera poses [n,4,4] of a clip in its first camera frame: T_WC = T_WB T_BC, re-anchored at frame 0."""
-    return so3.relative_to_first(np.einsum("nij,jk->nik", np.asarray(gt.T_WB, dtype=np.float64), T_BC))
-
-
 def init_metrics(init: InitResult, gt: GroundTruth) -> InitMetrics:
     """Errors of ``init`` (its g, v1 in B1 and bg) against the clip's GT."""
     g, v1, bg = gt_init_state(gt)

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from vi3_core.anchor import MODES, AnchorOptions
 from vi3_core.backbones.base import Backbone
-from vi3_core.dataset.sequence import Sequence, make_clip, sample_clips
+from vi3_core.dataset.sequence import Sequence, gt_camera_poses, make_clip, sample_clips
 from vi3_core.errors import DataError, Vi3Error
 from vi3_core.eval import metrics
 from vi3_core.eval.chained import ChainedMetrics, chained_metrics, gt_path_length
@@ -96,7 +96,7 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
         stream.backbone.bind(clip)
     outcome = stream.process(clip)
     result, init = outcome.result, outcome.init
-    T_gt = metrics.gt_camera_poses(clip.gt, clip.T_BC)
+    T_gt = gt_camera_poses(clip.gt, clip.T_BC)
     g_b1, _, _ = gt_init_state(clip.gt)
     down_c1 = clip.T_BC[:3, :3].T @ g_b1 / np.linalg.norm(g_b1)
     columns = {}

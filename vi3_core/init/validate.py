@@ -38,7 +38,7 @@ def check_imu(imu: ImuSamples, stamps: np.ndarray, options: InitOptions) -> str 
     if span.any() and dt[span].max() > options.max_imu_gap:
         i = int(np.flatnonzero(span)[np.argmax(dt[span])])
         d = _decimals_apart(dt[i], options.max_imu_gap)
-        return f"IMU gap of {dt[i]:.{d}f} s > max {options.max_imu_gap:.{d}f} s at t={imu.t[i]:.6f} s"
+        return f"IMU gap of {dt[i]:.{d}f} s > max_imu_gap {options.max_imu_gap:.{d}f} s at t={imu.t[i]:.6f} s"
     counts = np.diff(np.searchsorted(imu.t, stamps))
     if counts.min() < options.min_samples_per_interval:
         i = int(np.argmin(counts))

@@ -13,10 +13,10 @@ contiguous vectors, and each box is tested only on the pixel rectangle its proje
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
-from vi3_core.dataset.calib import CameraCalib
 from vi3_core.render.scene import Scene
 
 _EDGE_SAMPLES = np.linspace(0.0, 1.0, 17)
@@ -30,10 +30,24 @@ class _RaySet:
         self.to_pixels = to_pixels
 
 
+class CameraModel(Protocol):
+    """What the renderer needs of a calibrated camera (``vi3_core.dataset.calib.CameraCalib`` is one): size (w, h)
+    px, the undistorted pinhole camera (``undistorter().K`` [3,3]), and the maps between raw pixels [N,2] and
+    normalised undistorted points [N,2]."""
+
+    size: tuple[int, int]
+
+    def undistorter(self): ...
+
+    def distort(self, xy: np.ndarray) -> np.ndarray: ...
+
+    def undistort_points(self, uv: np.ndarray) -> np.ndarray: ...
+
+
 class Renderer:
     """Renders ``scene`` with ``calib``: raw mono8 images and exact z-depth of the undistorted image."""
 
-    def __init__(self, scene: Scene, calib: CameraCalib) -> None:
+    def __init__(self, scene: Scene, calib: CameraModel) -> None:
         self.scene = scene
         self.calib = calib
         w, h = calib.size

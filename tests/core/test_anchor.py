@@ -34,6 +34,7 @@ def backbone():
     return make_backbone("classical")
 
 
+@pytest.mark.slow
 def test_ttr_reports_init_first_then_refines_and_restores_the_weights(clip, backbone):
     seen = []
     result = anchor(clip, backbone, mode="ttr", options=AnchorOptions(ttr_steps=STEPS), on_init=seen.append,
@@ -54,6 +55,7 @@ def test_ttr_reports_init_first_then_refines_and_restores_the_weights(clip, back
     np.testing.assert_array_equal(again.alphas, result.alphas)
 
 
+@pytest.mark.slow
 def test_init_mode_scales_translation_and_depth_only(clip, backbone):
     result = anchor(clip, backbone, mode="init", init_options=OPEN_GATE)
     s = result.init.scale
@@ -63,6 +65,7 @@ def test_init_mode_scales_translation_and_depth_only(clip, backbone):
     np.testing.assert_allclose(result.geometry.depth, s * result.base.depth, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_clip_whose_init_is_not_ok_is_not_refined_and_says_why(clip, backbone):
     accel = clip.imu.accel.copy()
     accel[len(accel) // 2] = np.nan

@@ -24,7 +24,7 @@ from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, parameter
 from vi3_ros.pipeline import buffer_options
 from vi3_ros.settings import Settings
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_every_parameter_is_valid_and_documented():

@@ -34,6 +34,7 @@ def test_clip_sampling_follows_the_paper() -> None:
     assert len(runner.clip_indices(41, options=runner.EvalOptions(max_clips=2))) == 2
 
 
+@pytest.mark.slow
 def test_json_keys_present_and_finite_on_generated_sequence(evals) -> None:
     s = report.summarise(evals, mode="init", backbone="classical")
     assert s["n_clips"] == 2 and s["status_counts"]["ok"] == s["n_ok"] >= 1, s["clips"]
@@ -54,6 +55,7 @@ def test_gt_gravity_is_in_the_first_camera_frame(evals) -> None:
         assert e.down_c1[1] > 0.5  # camera y points down for a forward-looking camera on a level drone
 
 
+@pytest.mark.slow
 def test_vi3_eval_cli_json_plot_and_tum(sequence_dir, tmp_path, capsys) -> None:
     png, tum_dir = tmp_path / "eval.png", tmp_path / "tum"
     rc = cli.main(["eval", str(sequence_dir), "--json", "--max-clips", "1", "--no-progress", "--plot", str(png),
@@ -72,6 +74,7 @@ def test_vi3_eval_cli_names_a_missing_input(tmp_path, capsys) -> None:
     assert str(missing) in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_oracle_init_and_short_ttr_report_three_columns(sequence_dir) -> None:
     """--init gt with --mode ttr: the oracle init matches GT exactly, and Base / IMU-init / TTR are all evaluated."""
     from vi3_core.anchor import AnchorOptions
@@ -96,6 +99,7 @@ def test_vi3_demo_names_a_missing_input(tmp_path, capsys) -> None:
     assert str(missing) in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_vi3_eval_ablate_json_has_every_variant(sequence_dir, capsys) -> None:
     rc = cli.main(["eval", str(sequence_dir), "--ablate", "--json", "--max-clips", "1", "--no-progress"])
     obj = json.loads(capsys.readouterr().out)

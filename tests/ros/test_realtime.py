@@ -25,6 +25,8 @@ from vi3_ros.replay import replay
 from vi3_ros.replay_bench import bench_replay
 from vi3_ros.replay_odom import correction_jumps, read_odometry
 
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
 OPEN_GATE = {"max_scale_sigma": 10.0}  # plumbing, not which clips may claim a scale (see tests/test_replay.py)
 
 

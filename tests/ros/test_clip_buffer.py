@@ -177,6 +177,7 @@ def test_drops_carry_exact_integer_stamps():
     assert stalled.t == pytest.approx((t0 + 50_000_001) * 1e-9 + 0.003)  # float s in IMU time beside it
 
 
+@pytest.mark.slow
 def test_imu_sample_costs_constant_memory_while_a_clip_waits():
     """While a complete clip waits for IMU, a sample is O(1): the IMU buffer is not copied per sample (only when a
     clip is emitted), so a large buffer costs nothing per message."""

@@ -20,6 +20,7 @@ def room():
     return make_scene("room", 3)
 
 
+@pytest.mark.slow
 def test_render_is_deterministic_textured_and_inside_the_room(room):
     traj = make_trajectory("drone", 3, center=tuple(room.center), extent=tuple(room.extent))
     T_WC = traj.T_WB(np.array([1.3]))[0] @ EUROC_CAM0.T_BC
@@ -46,6 +47,7 @@ def test_depth_is_the_exact_distance_to_a_known_wall(room):
     np.testing.assert_allclose(depth, 0.9, atol=2e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_flight_stays_in_the_room_and_clear_of_boxes(name):
     scene = make_scene(name, 1)
@@ -58,6 +60,7 @@ def test_flight_stays_in_the_room_and_clear_of_boxes(name):
         assert np.linalg.norm(gap, axis=2).min() > 0.3
 
 
+@pytest.mark.slow
 def test_scene_grows_around_a_given_flight_volume():
     """A recorded trajectory's box (here V1_02's, 4.4 x 5.4 x 1.4 m) gets the scene's wall, floor and ceiling
     distances around it and proportionally more boxes, all clear of it."""

@@ -37,6 +37,8 @@ from vi3_core.types import ImuSamples  # noqa: E402
 from vi3_ros.io.reader import ImageEvent, iter_events  # noqa: E402
 from vi3_ros.node import RELIABLE, Vi3Node  # noqa: E402
 
+pytestmark = pytest.mark.slow  # every test here runs a node, replays, evaluations or generated sequences
+
 
 def test_node_publishes_metric_outputs(cache_dir, tmp_path):
     asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)

@@ -26,6 +26,7 @@ def _band_power(x: np.ndarray, lo: float, hi: float, fs: float = 200.0) -> float
     return float(np.trapezoid(p.sum(1)[sel], f[sel]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("motion", ["easy", "medium", "difficult"])
 def test_presets_fly_at_their_medians_smoothly_inside_the_volume(motion):
     preset, room = PRESETS[motion], make_scene("room", 0)
@@ -63,6 +64,7 @@ def test_thrust_attitude_has_exact_derivatives_and_follows_the_acceleration():
             assert angle.max() < 1.0 and np.median(angle) < 0.6
 
 
+@pytest.mark.slow
 def test_imu_streams_in_chunks_exactly_and_in_bounded_memory():
     traj = make_trajectory("drone", 2)
     t = imu_stamps(0.0, 30.0)

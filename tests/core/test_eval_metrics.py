@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vi3_core import so3
+from vi3_core.dataset.sequence import gt_camera_poses
 from vi3_core.eval import metrics
 from vi3_core.init.oracle import gt_init_state
 from vi3_core.types import GroundTruth, InitResult, InitStatus
@@ -161,7 +162,7 @@ def test_gt_camera_poses_compose_extrinsics_and_reanchor() -> None:
     T_WB = gt.T_WB.copy()
     T_WB[:, :3, 3] = [[0, 0, 0], [1, 0, 0], [2, 1, 0]]
     T_BC = so3.make_T(so3.exp(np.array([0.1, 1.5, 0.0])), np.array([0.05, -0.02, 0.01]))
-    T = metrics.gt_camera_poses(GroundTruth(T_WB=T_WB, v_WB=gt.v_WB, bg=gt.bg, ba=gt.ba), T_BC)
+    T = gt_camera_poses(GroundTruth(T_WB=T_WB, v_WB=gt.v_WB, bg=gt.bg, ba=gt.ba), T_BC)
     np.testing.assert_allclose(T[0], np.eye(4), atol=1e-12)
     # pure body translation with constant attitude: camera displacement = R_CB R_WB^T dp
     R_CW = T_BC[:3, :3].T @ T_WB[0, :3, :3].T

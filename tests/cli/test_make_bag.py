@@ -20,7 +20,9 @@ from vi3_core.dataset.generate import BLOCK_NS, CAM_PERIOD_NS, STAGING_PREFIX, S
 from vi3_ros import cli
 from vi3_ros.io.reader import open_sequence
 
-REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _cli(argv: list[str], capsys) -> tuple[int, str, str]:

@@ -1,27 +1,19 @@
-"""``vi3_core.online``: the window of clips fitted jointly, its marginal prior, consistency test and restarts, the
-chained odom trajectory, and the odom outputs of replay. Estimator tests use the ground-truth camera poses of a
-generated sequence as the "backbone" (up to a scale of 1/3, with 3 mm / 0.1 deg of noise, like a 3DFM's), so they
-run in seconds."""
+"""``vi3_core.online``: the window of clips fitted jointly, its marginal prior, consistency test and restarts, and the
+chained odom trajectory (their command-line outputs: tests/cli/test_online_cli.py). Estimator tests use the
+ground-truth camera poses of a generated sequence as the "backbone" (up to a scale of 1/3, with 3 mm / 0.1 deg of
+noise, like a 3DFM's), so they run in seconds."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
-from rosbags.highlevel import AnyReader
 
-from msg_adapters.diagnostics import diagnostic_array_to_statuses
-from msg_adapters.poses import odometry_to_numpy, poses_to_T, tf_message_to_list
-from msg_adapters.stamps import stamp_to_ns
 from vi3_core.dataset.asl import read_asl
-from vi3_core.dataset.calib import write_euroc_sensor_yaml
-from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
-from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.dataset.generate import cached_sequence
+from vi3_core.dataset.sequence import gt_camera_poses, make_clip, sample_clips
 from vi3_core.eval.chained import chained_metrics
-from vi3_core.eval.metrics import gt_camera_poses
-from vi3_core.eval.tum import read_tum
 from vi3_core.fit.position import fit_positions
 from vi3_core.init import initialise_clip
 from vi3_core.init.oracle import oracle_init
@@ -29,7 +21,6 @@ from vi3_core.online import OnlineEstimator, OnlineOptions
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.visual import PoseNoise, noisy_poses
 from vi3_core.types import AnchorResult, Geometry
-from vi3_ros.cli import main as vi3_main
 
 TRUE_SCALE = 3.0  # metric = 3 x the fake backbone's translation
 NOISE = PoseNoise(pos_m=0.003, rot_deg=0.1)
@@ -87,6 +78,7 @@ def test_position_fit_recovers_the_scale_of_exact_geometry(seq):
     assert wrong.rms > 5 * fit.rms  # a wrong velocity shows in the residual
 
 
+@pytest.mark.slow
 def test_window_earns_scales_the_clips_cannot_claim_alone_and_the_chain_stays_level(seq):
     est, online, own, decisions = _run(seq)
     n_online, err, sig = _claims(online)
@@ -101,6 +93,7 @@ def test_window_earns_scales_the_clips_cannot_claim_alone_and_the_chain_stays_le
     assert m.gravity_err_deg < 1.0 and m.drift_pct < 10.0 and len(m.segments) == 1 and not traj.resets, m
 
 
+@pytest.mark.slow
 def test_a_gap_of_dropped_clips_is_bridged_by_the_imu(seq):
     """Clips dropped by a busy worker (a 2 s hole) keep the window: the IMU bridges the gap, no reset."""
     clips = [idx for idx in sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
@@ -111,6 +104,7 @@ def test_a_gap_of_dropped_clips_is_bridged_by_the_imu(seq):
     assert n_online > _claims(own)[0] and np.all(err < 3 * sig), (n_online, err, sig)
 
 
+@pytest.mark.slow
 def test_overlapping_clips_share_the_window(seq):
     """Clips that overlap (hop < clip span) share frames; the window takes them as they come (at most max_clips)."""
     _, online, _, decisions = _run(seq, clips=sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding", hop=8))
@@ -119,11 +113,13 @@ def test_overlapping_clips_share_the_window(seq):
     assert n_online >= len(online) // 2 and np.all(err < 3 * sig), (n_online, err, sig)
 
 
+@pytest.mark.slow
 def test_determinism(seq):
     a, b = _run(seq)[0].trajectory, _run(seq)[0].trajectory
     assert np.array_equal(a.stamps, b.stamps) and np.array_equal(a.T_OB, b.T_OB)
 
 
+@pytest.mark.slow
 def test_a_gap_longer_than_the_bridge_restarts_and_starts_a_segment(seq):
     clips = [idx for idx in sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")
              if not 4.0 <= seq.stamps[idx[0]] - seq.stamps[0] < 6.0]  # 2 s without images
@@ -138,6 +134,7 @@ def test_a_gap_longer_than_the_bridge_restarts_and_starts_a_segment(seq):
     assert np.all(err < 3 * sig), (err, sig)
 
 
+@pytest.mark.slow
 def test_a_broken_clip_is_rejected_and_named_and_the_window_goes_on(seq):
     baseline = _run(seq)[3]
     k = next(i for i, d in enumerate(baseline) if i >= 4 and int(d.split()[1]) >= 4)
@@ -146,75 +143,6 @@ def test_a_broken_clip_is_rejected_and_named_and_the_window_goes_on(seq):
     assert "backbone failure" in online[k].reason or "inconsistent with the online window" in online[k].reason
     assert decisions[:k] == baseline[:k] and "reset" not in decisions[k + 1]
     assert online[k + 1].ok or online[k + 1].status.value == "unobservable"
-
-
-def _read(path) -> dict[str, list]:
-    out: dict[str, list] = {}
-    with AnyReader([path]) as reader:
-        for conn, _, raw in reader.messages():
-            out.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
-    return out
-
-
-def test_replay_writes_odometry_path_and_tf_in_odom(cache_dir, tmp_path):
-    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
-    calib = tmp_path / "cam0.yaml"
-    write_euroc_sensor_yaml(EUROC_CAM0, calib)
-    out = tmp_path / "out.mcap"
-    assert vi3_main(["replay", str(asl), "--output", str(out), "--calib", str(calib), "--backbone", "classical",
-                     "--no-progress", "--param", "publish_odom_tf=true", "--param", "outputs_in_odom=true"]) == 0
-    msgs = _read(out)
-    odom, paths = msgs["/vi3_node/odom"], msgs["/vi3_node/path"]
-    assert len(odom) == len(paths) >= 2
-    assert {(o.header.frame_id, o.child_frame_id) for o in odom} == {("odom", "base_link")}
-    tfs = [t for m in msgs["/tf"] for t in tf_message_to_list(m)]
-    assert [(p, c) for _, p, c, _ in tfs] == [("odom", "base_link")] * len(odom)
-    T_last = odometry_to_numpy(odom[-1])[0]
-    np.testing.assert_allclose(tfs[-1][0], T_last, atol=1e-9)
-    path_T = poses_to_T([p.pose for p in paths[-1].poses])
-    np.testing.assert_allclose(path_T[-1], T_last, atol=1e-9)
-    stamps = [stamp_to_ns(p.header.stamp) for p in paths[-1].poses]
-    assert stamps == sorted(set(stamps)) and stamps[-1] == stamp_to_ns(odom[-1].header.stamp)
-    assert {p.header.frame_id for p in msgs["/vi3_node/poses"]} == {"odom"}
-    statuses = [s for m in msgs["/vi3_node/status"] for s in diagnostic_array_to_statuses(m)]
-    assert all("online" in s.values for s in statuses if s.values.get("result") == "init")
-
-
-def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
-    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
-    common = ["eval", str(asl), "--json", "--clips", "sliding", "--max-clips", "2", "--no-progress"]
-    assert vi3_main([*common, "--export-tum", str(tmp_path)]) == 0
-    obj = json.loads(capsys.readouterr().out)
-    chained = obj["chained"]
-    assert {"ate_m", "drift_pct", "gravity_err_deg", "resets", "segments", "scale_err_median",
-            "independent_scale_err_median", "independent_claimed_outliers"} <= set(chained)
-    assert chained["resets"] == 0 and chained["segments"] == 1 and "claimed_outliers" in obj
-    assert all(np.isfinite(chained[k]) for k in ("ate_m", "drift_pct", "gravity_err_deg"))
-    assert chained["scale_err_median"] is None  # 2 clips: none after the first 3
-    assert len(chained["decisions"]) == obj["n_clips"] == 2
-    stamps, T = read_tum(tmp_path / "odom_vi3.txt")
-    assert len(stamps) == chained["frames"] == 8 * obj["status_counts"]["ok"] and np.all(np.diff(stamps) > 0)
-    assert vi3_main([*common, "--independent"]) == 0
-    assert "chained" not in json.loads(capsys.readouterr().out)
-
-
-def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
-    """Several inputs: each sequence reported, then their clips pooled (JSON "sequences" + "pooled"); plots and TUM
-    files are named after the sequences."""
-    paths = [cached_sequence(cache_dir, seconds=2.5, seed=seed, with_depth=False) for seed in (1, 3)]
-    rc = vi3_main(["eval", *map(str, paths), "--json", "--clips", "sliding", "--max-clips", "2", "--no-progress",
-                   "--plot", str(tmp_path / "eval.png"), "--export-tum", str(tmp_path / "tum")])
-    obj = json.loads(capsys.readouterr().out)
-    assert rc == 0 and [s["n_clips"] for s in obj["sequences"]] == [2, 2]
-    names = [s["sequence"] for s in obj["sequences"]]
-    assert len(set(names)) == 2 and obj["pooled"]["n_clips"] == 4
-    pooled = obj["pooled"]["chained"]
-    assert pooled["sequences"] == 2 and pooled["resets"] == 0
-    assert pooled["drift_pct_max"] == max(s["chained"]["drift_pct"] for s in obj["sequences"])
-    assert pooled["independent_claimed_outliers"]["count"] == sum(
-        s["chained"]["independent_claimed_outliers"]["count"] for s in obj["sequences"])
-    assert all((tmp_path / f"eval_{n}.png").is_file() and (tmp_path / "tum" / n / "odom_vi3.txt").is_file()
-               for n in names)
 
 
 def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(cache_dir):

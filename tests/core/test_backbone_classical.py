@@ -21,9 +21,9 @@ from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.camera_torch import pixel_rays
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
-from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.dataset.sequence import gt_camera_poses, make_clip, sample_clips
 from vi3_core.errors import CalibrationError, DataError, ModeNotSupported
-from vi3_core.eval.metrics import absrel_median_aligned, gt_camera_poses, resample_depth
+from vi3_core.eval.metrics import absrel_median_aligned, resample_depth
 from vi3_core.threads import torch_threads
 
 #: Local grey-level standard deviation (0-255, 7x7 window at the working resolution) above which a pixel counts
@@ -64,6 +64,7 @@ def half_clip(first_clip) -> tuple[np.ndarray, np.ndarray]:
     return half_resolution(first_clip.images, first_clip.K)
 
 
+@pytest.mark.slow
 def test_accuracy_on_generated_euroc_clips(room):
     """Acceptance: rotation <= 1 deg median, translation <= 5 % of the path after a Sim(3) alignment, median-scaled
     AbsRel <= 0.15 on textured pixels, on the three paper clips (n = 8, stride 2 at 20 Hz) of a generated room."""
@@ -92,6 +93,7 @@ def test_accuracy_on_generated_euroc_clips(room):
         assert hi < lo, (hi, lo)
 
 
+@pytest.mark.slow
 def test_scale_is_normalised_like_vggt(half_clip):
     """Confidence-weighted mean distance of the dense points from the first camera is 1; not metric."""
     backbone = make_backbone("classical")
@@ -127,6 +129,7 @@ def exact_plane() -> tuple[tuple, float, int]:
     return args, depth, w
 
 
+@pytest.mark.slow
 def test_plane_sweep_recovers_an_exact_plane(exact_plane):
     args, depth, w = exact_plane
     d, conf = plane_sweep(*args, n_depths=32, n_sources=3, best_k=2, window=5)
@@ -135,6 +138,7 @@ def test_plane_sweep_recovers_an_exact_plane(exact_plane):
     assert float(conf[0][inner].mean()) > 3 * float(conf[0][:, 4: w // 4 - 4].mean())
 
 
+@pytest.mark.slow
 def test_plane_sweep_result_does_not_depend_on_its_threads(exact_plane):
     """Reference frames swept on 3 threads give bit-identical depth and confidence to one thread, for every
     source selection path (all sources, and the best 2 of 3)."""
@@ -145,6 +149,7 @@ def test_plane_sweep_result_does_not_depend_on_its_threads(exact_plane):
         assert torch.equal(one[0], three[0]) and torch.equal(one[1], three[1])
 
 
+@pytest.mark.slow
 def test_plane_sweep_threads_follow_torch_unless_given(half_clip):
     """Without ``threads`` the sweep runs on torch's intra-op thread count of the calling thread when the clip
     comes (the process's ``threads`` setting); an explicit count wins."""
@@ -158,6 +163,7 @@ def test_plane_sweep_threads_follow_torch_unless_given(half_clip):
         ClassicalBackbone(threads=0)
 
 
+@pytest.mark.slow
 def test_corrections_are_the_trainable_groups(half_clip):
     images, K = half_clip
     backbone = make_backbone("classical")
@@ -249,6 +255,7 @@ def test_working_grid_is_the_shared_resize_crop(half_clip):
     assert {"tracks_s", "sfm_s", "mvs_s", "scale_divisor"} <= set(diag)
 
 
+@pytest.mark.slow
 def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):
     monkeypatch.setenv("VI3_CACHE", str(cache_dir))
     out = bench_backbone(argparse.Namespace(backbone="classical", device="cpu", dtype="fp32", random_init=False,
@@ -261,6 +268,7 @@ def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):
     assert out["threads"] == torch.get_num_threads() and "omp_wait_policy" in out
 
 
+@pytest.mark.slow
 def test_real_euroc_frames(euroc_fixture):
     """The real 5-frame EuRoC MH_01 fixture (handheld motion in the machine hall): geometry is recovered, and the
     near clutter in the lower third of the view is nearer than the hall behind it in the upper third."""

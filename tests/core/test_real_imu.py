@@ -50,6 +50,7 @@ def _chained(seq, noise: PoseNoise, *, seed: int = 0, max_clips: int | None = No
         yield clip, base, instrument.last_scale, init
 
 
+@pytest.mark.slow
 def test_real_imu_claims_are_supported_by_their_sigma(v102):
     """Chained and independent: no claimed clip more than 10 % off or beyond 3 sigma; the window claims most clips
     once the drone flies, the clips on their own few (3 mm of noise hides the scale of one 0.7 s clip)."""
@@ -82,6 +83,7 @@ def test_gt_seed_makes_the_instrument_noise_repeatable_and_distinct(shared_dir, 
     assert "--gt-seed need --backbone gt" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_window_does_not_amplify_round_off(v102):
     """A 1e-13 relative change of the accelerometer samples (round-off of another BLAS or CPU) leaves every status
     and moves no scale by more than 1 %: the window's prior once dropped weak directions at a cut-off, and this change

@@ -27,7 +27,9 @@ from vi3_core.dataset.generate import cached_sequence
 from vi3_core.eval import distributed, report, runner
 from vi3_ros import cli
 
-REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
+REPO = Path(__file__).resolve().parents[2]
 HOP = ["--clips", "sliding", "--param", "hop=8"]  # 4 overlapping clips of 41 frames: 0-14, 8-22, 16-30, 24-38
 
 

@@ -17,6 +17,8 @@ from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.reader import ImageEvent, ImuEvent, iter_events, merge_by_time, open_sequence
 from vi3_ros.io.ros1 import noetic_typestore, ros1_types, write_ros1_bag
 
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
 
 def _assert_same(seq, ref, *, gt_velocity_atol: float):
     assert np.array_equal(seq.stamps_ns, ref.stamps_ns)
@@ -122,7 +124,7 @@ def test_make_bag_is_deterministic_and_opens(tmp_path):
 
 def test_bundled_bag_is_the_make_bag_sequence(cache_dir):
     """bags/vi3_demo is the MCAP of ``vi3 make-bag --seconds 1.8 --seed 0``: regenerating it gives the same data."""
-    path = Path(__file__).resolve().parents[1] / "bags" / "vi3_demo"
+    path = Path(__file__).resolve().parents[2] / "bags" / "vi3_demo"
     seq = open_sequence(path)
     assert sum(f.stat().st_size for f in path.parent.rglob("*") if f.is_file()) <= 15e6
     assert len(seq) == 37 and seq.calib is not None and seq.gt is not None

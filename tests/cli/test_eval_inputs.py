@@ -22,6 +22,8 @@ from vi3_core.eval import runner
 from vi3_ros import cli
 from vi3_ros.commands.eval import unique_names
 
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
 
 @pytest.fixture(scope="module")
 def generated(cache_dir) -> Path:

@@ -104,6 +104,7 @@ def small_clip(cache_dir) -> tuple[np.ndarray, np.ndarray]:
     return half_resolution(clip.images, clip.K)
 
 
+@pytest.mark.slow
 def test_classical_satisfies_the_contract(small_clip):
     backbone = make_backbone("classical")
     inputs, pred = check_backbone_contract(backbone, *small_clip)

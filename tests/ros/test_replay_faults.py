@@ -31,7 +31,9 @@ from vi3_ros.calibration import FrameMisfit, make_clip
 from vi3_ros.cli import main as vi3_main
 from vi3_ros.clip_buffer import RawClip
 
-REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -42,6 +42,8 @@ from vi3_ros.params import resolve
 from vi3_ros.replay import replay
 from vi3_ros.replay_bench import bench_replay
 
+pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
+
 CLIP_FRAMES = 16  # clip_length 8 x stride 2, non-overlapping
 
 

@@ -58,6 +58,7 @@ def test_foundation_models_are_the_adapters():
     assert foundation_models() == list(ADAPTERS)
 
 
+@pytest.mark.slow
 def test_bench_ttr_reports_the_paper_table_columns(cache_dir, monkeypatch):
     monkeypatch.setenv("VI3_CACHE", str(cache_dir))
     out = bench_ttr(_args(bench="ttr", repeats=3))

@@ -120,6 +120,7 @@ def test_make_clip(generated):
         make_clip(seq, np.array([0, 41]))
 
 
+@pytest.mark.slow
 def test_inertia_agrees_noise_free_preintegration_reproduces_gt(cache_dir):
     """Preintegrating the noise-free IMU with GT biases and gravity gives GT relative poses over 0.8 s."""
     seq = read_asl(cached_sequence(cache_dir, seconds=2.0, seed=5, imu_noise=False, with_depth=False))

@@ -57,6 +57,7 @@ def test_single_clip_is_exact_without_noise():
     assert res.sigma_v[0] * case.scale < 1e-5  # no visual noise found where there is none
 
 
+@pytest.mark.slow
 def test_eq_s_is_biased_low_by_visual_noise_and_the_fit_is_not():
     """3 mm / 0.1 deg per frame: Eq. S divides by noise-inflated velocity increments (regression dilution). The fit's
     errors are centred on zero relative to their own sigma (on realistic motion a single clip's sigma is large: its
@@ -73,6 +74,7 @@ def test_eq_s_is_biased_low_by_visual_noise_and_the_fit_is_not():
     assert abs(np.median(z)) < 0.5 and np.mean(np.abs(z) < 2) >= 0.9, z  # Eq. S: 0.39 of the true scale
 
 
+@pytest.mark.slow
 def test_visual_noise_is_recovered_from_the_clips_own_residuals():
     for pos in (0.001, 0.005):
         found = []
