@@ -7,10 +7,12 @@ bias and, by default, an accelerometer bias of EuRoC's size) and the ground-trut
 nanosecond grid, so camera stamps coincide with IMU and GT stamps, as in EuRoC.
 
 Along a real EuRoC recording (``from_euroc``: a ``mav0`` folder with ``imu0``, ``state_groundtruth_estimate0`` and
-``cam0/sensor.yaml``, images not needed): the IMU samples are carried unchanged (values and ns stamps), the GT rows
-are copied, cam0 frames are rendered at the camera's rate on the IMU's ns grid within the span both cover, at the
-GT body pose (position: cubic Hermite through the GT positions and velocities; attitude: rotation spline) times
-the folder's own cam0 ``T_BS``, in the scene moved and grown around the trajectory.
+``cam0/sensor.yaml``, images not needed): the IMU samples are carried unchanged (values and ns stamps); cam0 frames
+are rendered at the camera's rate on the IMU's own ns stamps within the span both cover, except inside a GT gap (rows
+more than ``MAX_GT_GAP_NS`` apart), at the GT body pose (position: cubic Hermite through the GT positions and
+velocities; attitude: rotation spline) times the folder's own cam0 ``T_BS``, in the scene moved and grown around the
+trajectory; the GT rows are copied over the IMU's span and to the rows bracketing the first and last frames, so the
+written GT covers every frame wherever the recording's GT starts or ends.
 
 Everything is produced and written one ``BLOCK_NS`` of time at a time (frames rendered by a small thread pool,
 two blocks in flight), so memory does not grow with the length of the sequence.
@@ -55,10 +57,13 @@ CAM_PERIOD_NS = 50_000_000  # 20 Hz
 IMU_PERIOD_NS = 5_000_000  # 200 Hz
 IMU_MARGIN_NS = 100_000_000  # IMU and GT start 0.1 s before the first frame and end 0.1 s after the last
 IMU_HISTORY_NS = 1_000_000_000  # IMU kept before the first frame of a recording rendered from a later start
+#: Consecutive GT rows of a recording farther apart than this are a gap: no frame is rendered inside it (its pose would
+#: be interpolated over motion nobody measured). EuRoC's GT rows are 5-10 ms apart (25 ms in the 40 Hz V1_02 excerpt).
+MAX_GT_GAP_NS = 100_000_000
 BLOCK_NS = 2_000_000_000  # streams are produced and written 2 s at a time
 MIN_SECONDS = CAM_PERIOD_NS * 1e-9  # the shortest sequence: two frames
 #: Version of what the generator writes for given parameters (part of the cache marker).
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 #: Hidden folders that hold a sequence while it is written: ``.vi3-generating.<pid>.<random>``.
 STAGING_PREFIX = ".vi3-generating."
 
@@ -136,8 +141,20 @@ def _in(ns: np.ndarray, ns0: int, ns1: int) -> slice:
     return slice(int(np.searchsorted(ns, ns0)), int(np.searchsorted(ns, ns1)))
 
 
+@dataclass(frozen=True)
+class Written:
+    """What ``write_sequence`` wrote: ``calib``, the cam0 calibration the frames were rendered with, and ``gt_gaps``
+    [G,2] int64 ns, the gaps in a followed recording's ground truth that frames were left out of (the stamps of the
+    GT rows either side of each; none for a generated sequence)."""
+
+    calib: CameraCalib
+    gt_gaps: np.ndarray
+
+
 class _Generated:
     """A generated flight (see the module docstring); ``block`` must be called on consecutive blocks."""
+
+    gt_gaps = np.zeros((0, 2), dtype=np.int64)  # its GT is on the IMU's grid: no gaps
 
     def __init__(self, spec: SequenceSpec, world: Scene) -> None:
         self.calib = EUROC_CAM0
@@ -167,6 +184,52 @@ class _Generated:
                      self.traj.T_WB(self._t(imu_ns)), self.traj.velocity_W(self._t(imu_ns)), sim.bg, sim.ba)
 
 
+def frame_grid(imu_ns: np.ndarray, lo: int, hi: int, period_ns: int) -> np.ndarray:
+    """Camera stamps [n] int64 ns in [lo, hi] on the IMU's own stamps ``imu_ns`` (sorted int64 ns), as EuRoC triggers
+    cam0 on the IMU clock: the IMU stamp nearest to each ``t0 + k period_ns``, t0 the first IMU stamp at or after
+    ``lo`` (integer ns throughout: float64 at EuRoC epochs resolves only ~0.24 us)."""
+    inside = imu_ns[(imu_ns >= lo) & (imu_ns <= hi)]
+    if len(inside) < 2:
+        return inside
+    want = inside[0] + np.arange((inside[-1] - inside[0]) // period_ns + 1, dtype=np.int64) * period_ns
+    after = np.clip(np.searchsorted(inside, want), 1, len(inside) - 1)
+    nearer_before = want - inside[after - 1] <= inside[after] - want
+    return np.unique(np.where(nearer_before, inside[after - 1], inside[after]))
+
+
+def gt_brackets(gt_ns: np.ndarray, ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For stamps ``ns`` [n] int64 within the sorted GT stamps ``gt_ns`` [k] int64 (both ns): the indices [n] of the
+    last GT row at or before and of the first GT row at or after each stamp (the same row for a stamp on a row)."""
+    return np.searchsorted(gt_ns, ns, side="right") - 1, np.searchsorted(gt_ns, ns, side="left")
+
+
+def euroc_frames(imu_ns: np.ndarray, gt_ns: np.ndarray, period_ns: int, *, start_ns: int = 0,
+                 length_ns: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where to render cam0 along a recording with IMU stamps ``imu_ns`` and GT stamps ``gt_ns`` (sorted, int64 ns):
+    ``frame_grid`` over the span both cover, from ``start_ns`` into it, for ``length_ns`` (None: to its end), leaving
+    out the frames in a GT gap (bracketing GT rows more than ``MAX_GT_GAP_NS`` apart). Returns (the frames' stamps
+    [n] int64 ns, the gaps frames were left out of [G,2] int64 ns: the GT rows either side of each). Raises
+    DataError when fewer than two frames remain."""
+    lo, hi = max(int(imu_ns[0]), int(gt_ns[0])), min(int(imu_ns[-1]), int(gt_ns[-1]))
+    if hi - lo < period_ns:
+        raise DataError(f"the IMU [{imu_ns[0]}, {imu_ns[-1]}] ns and the ground truth [{gt_ns[0]}, {gt_ns[-1]}] ns "
+                        "share less than one camera period")
+    candidates = frame_grid(imu_ns, lo, hi, period_ns)
+    candidates = candidates[candidates >= lo + start_ns]
+    before, after = gt_brackets(gt_ns, candidates)
+    measured = gt_ns[after] - gt_ns[before] <= MAX_GT_GAP_NS
+    frames = candidates[measured]
+    if length_ns is not None and len(frames):
+        frames = frames[frames <= frames[0] + length_ns]
+    skipped = ~measured & (candidates <= (frames[-1] if len(frames) else hi))
+    gaps = np.unique(np.stack([gt_ns[before[skipped]], gt_ns[after[skipped]]], 1), axis=0)
+    if len(frames) < 2:
+        raise DataError(f"fewer than two camera frames fit in the span covered by both IMU and GT "
+                        f"({(hi - lo) * 1e-9:.2f} s) after start {start_ns * 1e-9:g} s"
+                        + (f" outside its {len(gaps)} GT gaps > {MAX_GT_GAP_NS * 1e-9:g} s" if len(gaps) else ""))
+    return frames, gaps
+
+
 class _Euroc:
     """A real EuRoC recording to render along (see the module docstring)."""
 
@@ -179,25 +242,21 @@ class _Euroc:
         self.calib = load_calib(src / "cam0" / "sensor.yaml")
         if len(imu_ns) < 2 or np.any(np.diff(imu_ns) <= 0):
             raise DataError(f"{src / 'imu0' / 'data.csv'}: needs >= 2 strictly increasing stamps")
-        lo, hi = max(imu_ns[0], gt.t_ns[0]), min(imu_ns[-1], gt.t_ns[-1])
-        period = 1e9 / (self.calib.rate_hz or euroc.CAMERA_RATE_HZ)
-        if hi - lo < period:
-            raise DataError(f"{src}: the IMU [{imu_ns[0]}, {imu_ns[-1]}] ns and the ground truth "
-                            f"[{gt.t_ns[0]}, {gt.t_ns[-1]}] ns share less than one camera period")
-        # Frames on the IMU's own stamps: the first at or after each camera period from the start of the shared span.
-        want = lo + np.arange(int((hi - lo) // period) + 1) * period
-        cam_ns = np.unique(imu_ns[np.minimum(np.searchsorted(imu_ns, want), len(imu_ns) - 1)])
-        cam_ns = cam_ns[(cam_ns >= lo + spec.start_s * 1e9) & (cam_ns <= hi)]
-        if spec.seconds is not None and len(cam_ns):
-            cam_ns = cam_ns[cam_ns <= cam_ns[0] + spec.seconds * 1e9]
-        if len(cam_ns) < 2:
-            raise DataError(f"{src}: fewer than two camera frames fit in the span covered by both IMU and GT "
-                            f"({(hi - lo) * 1e-9:.2f} s) after start {spec.start_s:g} s")
+        try:
+            cam_ns, self.gt_gaps = euroc_frames(
+                imu_ns, gt.t_ns, int(round(1e9 / (self.calib.rate_hz or euroc.CAMERA_RATE_HZ))),
+                start_ns=int(round(spec.start_s * 1e9)),
+                length_ns=None if spec.seconds is None else int(round(spec.seconds * 1e9)))
+        except DataError as err:
+            raise DataError(f"{src}: {err}") from None
         # All IMU samples up to the frames (a later start keeps IMU_HISTORY_NS before the first), then a margin.
         first = imu_ns[0] if not spec.start_s else cam_ns[0] - IMU_HISTORY_NS
         imu_keep = (imu_ns >= first) & (imu_ns <= cam_ns[-1] + IMU_MARGIN_NS)
         imu_ns, imu = imu_ns[imu_keep], imu.select(imu_keep)
-        gt_keep = (gt.t_ns >= imu_ns[0]) & (gt.t_ns <= imu_ns[-1])
+        # The GT rows over that IMU span and the rows bracketing the first and last frames (GT may start before the
+        # IMU or end after it): the written track covers every frame.
+        before, after = gt_brackets(gt.t_ns, cam_ns[[0, -1]])
+        gt_keep = (gt.t_ns >= min(imu_ns[0], gt.t_ns[before[0]])) & (gt.t_ns <= max(imu_ns[-1], gt.t_ns[after[1]]))
         self.imu_ns, self.imu = imu_ns, imu
         self.gt_ns, self.T_WB, self.v_WB = gt.t_ns[gt_keep], gt.T_WB[gt_keep], gt.v_WB[gt_keep]
         self.bg, self.ba = gt.bg[gt_keep], gt.ba[gt_keep]
@@ -219,10 +278,11 @@ class _Euroc:
 
 
 def write_sequence(mav0, spec: SequenceSpec, *, workers: int = 2,
-                   on_block: Callable[[Block], None] | None = None) -> CameraCalib:
+                   on_block: Callable[[Block], None] | None = None) -> Written:
     """Write the sequence ``spec`` into the (new or empty) folder ``mav0``, a block at a time; ``on_block`` gets
     each block's streams in time order (e.g. to write a bag in the same pass). ``workers`` threads render and encode
-    frames (numpy and OpenCV release the GIL). Returns the cam0 calibration the frames were rendered with."""
+    frames (numpy and OpenCV release the GIL). Returns the calibration the frames were rendered with and the GT
+    gaps left without frames."""
     mav0 = Path(mav0)
     if spec.from_euroc is None:
         world = make_scene(spec.scene, spec.seed)
@@ -269,7 +329,7 @@ def write_sequence(mav0, spec: SequenceSpec, *, workers: int = 2,
             finish(*pending)
     finally:  # an error or an interrupt: drop queued frames, wait for those being written
         pool.shutdown(wait=True, cancel_futures=True)
-    return source.calib
+    return Written(source.calib, source.gt_gaps)
 
 
 # ------------------------------------------------------------------------------------------- staging and cache

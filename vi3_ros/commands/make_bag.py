@@ -23,6 +23,10 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # vi3_core is imported where used: the CLI loads only what the command it runs needs
+    from vi3_core.dataset.generate import Written
 
 OUTPUTS = ("asl", "ros1.bag", "mcap", "camchain-imucam.yaml")
 
@@ -55,9 +59,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def make_bag(out, spec, *, overwrite: bool = False, workers: int = 2) -> dict[str, float]:
+def make_bag(out, spec, *, overwrite: bool = False, workers: int = 2) -> tuple[dict[str, float], Written]:
     """Write the three forms of the sequence ``spec`` (a ``SequenceSpec``) into ``out``; returns the seconds each
-    stage took. Raises DataError for an output that cannot be written."""
+    stage took and what ``write_sequence`` reports. Raises DataError for an output that cannot be written."""
     from vi3_core.dataset.calib import write_kalibr_camchain
     from vi3_core.dataset.generate import staging_dir, write_sequence
     from vi3_core.errors import DataError
@@ -77,13 +81,13 @@ def make_bag(out, spec, *, overwrite: bool = False, workers: int = 2) -> dict[st
     try:
         t = time.perf_counter()
         with Ros1BagWriter(stage / "ros1.bag") as bag:
-            calib = write_sequence(stage / "asl" / "mav0", spec, workers=workers, on_block=lambda b: bag.write(
+            written = write_sequence(stage / "asl" / "mav0", spec, workers=workers, on_block=lambda b: bag.write(
                 b.cam_ns, b.images.__getitem__, b.imu_ns, b.imu, b.gt_ns, b.T_WB))
         times["asl_and_ros1_s"] = time.perf_counter() - t
         t = time.perf_counter()
         convert_to_rosbag2(stage / "ros1.bag", stage / "mcap", storage="mcap")
         times["mcap_s"] = time.perf_counter() - t
-        write_kalibr_camchain(calib, stage / "camchain-imucam.yaml", rostopic=IMAGE_TOPIC)
+        write_kalibr_camchain(written.calib, stage / "camchain-imucam.yaml", rostopic=IMAGE_TOPIC)
         for name in OUTPUTS:
             target = out / name
             if target.is_dir():
@@ -95,7 +99,7 @@ def make_bag(out, spec, *, overwrite: bool = False, workers: int = 2) -> dict[st
         shutil.rmtree(stage, ignore_errors=True)
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
-    return times
+    return times, written
 
 
 class _Terminated(BaseException):
@@ -123,6 +127,7 @@ def _spec(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from vi3_core.dataset.generate import MAX_GT_GAP_NS
     from vi3_core.errors import DataError
 
     def fail(reason: str, code: int = 2) -> int:
@@ -133,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if main_thread else None
     t0 = time.perf_counter()
     try:
-        times = make_bag(args.out, _spec(args), overwrite=args.overwrite)
+        times, written = make_bag(args.out, _spec(args), overwrite=args.overwrite)
     except DataError as err:
         return fail(str(err))
     except OSError as err:  # a read-only folder, a full disk, an unreadable recording
@@ -150,4 +155,7 @@ def run(args: argparse.Namespace) -> int:
     stages = ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in times.items())
     print(f"wrote {args.out}/asl/mav0, {args.out}/ros1.bag, {args.out}/mcap/ and {args.out}/camchain-imucam.yaml "
           f"in {time.perf_counter() - t0:.1f} s ({stages})")
+    for ns0, ns1 in written.gt_gaps.tolist():
+        print(f"vi3 make-bag: note: no frames in the ground truth's gap of {(ns1 - ns0) * 1e-9:.3f} s from {ns0} to "
+              f"{ns1} ns (GT rows more than {MAX_GT_GAP_NS * 1e-9:g} s apart)", file=sys.stderr)
     return 0
