@@ -3,9 +3,10 @@ window of clips (beyond the paper; its Eq. S stays available as the ablation ``s
 
 Why not Eq. S alone: s = |V| / |V^M| divides by the norm of second differences of the backbone's positions. Their
 noise inflates |V^M| (regression dilution of the denominator), so at 3 mm / 0.1 deg per frame the scale of a
-EuRoC-like clip comes out at about half the true scale, and nothing in it says how well the clip determines s. Here the errors sit
-where they are: the backbone's positions are noisy, the IMU kinematics over a second are precise, so the backbone
-positions are the observations and the IMU the regressor (errors-in-variables turned the right way round):
+EuRoC-like clip comes out at about half the true scale, and nothing in it says how well the clip determines s. Here
+the errors sit where they are: the backbone's positions are noisy, the IMU kinematics over a second are precise, so
+the backbone positions are the observations and the IMU the regressor (errors-in-variables turned the right way
+round):
 
     a_ki = lam_k (R_fk^T d_ki - b_ki) + c_k + e_ki,        lam_k = 1 / s_k,
 

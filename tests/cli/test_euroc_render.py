@@ -17,6 +17,8 @@ from vi3_core.dataset.generate import MAX_GT_GAP_NS
 from vi3_core.dataset.sequence import sample_clips
 from vi3_ros import cli
 
+pytestmark = pytest.mark.slow  # every test here renders and evaluates a cut of a real recording
+
 MS = 1_000_000  # ns
 START_NS = 10_000 * MS  # the cut starts 10 s into V1_02's GT: the drone is flying
 IMU_NS = 2_500 * MS  # IMU length of a cut
