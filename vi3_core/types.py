@@ -117,7 +117,8 @@ class Clip:
     images: [n,H,W] or [n,H,W,3] uint8 (RGB), undistorted; K: [3,3] intrinsics of the undistorted images;
     T_BC: [4,4] camera pose in the body frame (EuRoC ``T_BS`` of cam0); imu: samples covering
     [stamps[0], stamps[-1]] with at least one sample beyond each end; gt: optional ground truth;
-    imu_history: optional longer IMU window around the clip (seconds), for the long-window gravity seed.
+    imu_history: optional longer IMU window around the clip (seconds), for the long-window gravity seed;
+    stamps_ns: optional [n] int64, the frames' header stamps as recorded (camera time, ns), for outputs.
     """
 
     stamps: np.ndarray
@@ -127,6 +128,7 @@ class Clip:
     imu: ImuSamples
     gt: GroundTruth | None = None
     imu_history: ImuSamples | None = None
+    stamps_ns: np.ndarray | None = None
 
     @property
     def n(self) -> int:

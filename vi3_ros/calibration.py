@@ -87,7 +87,8 @@ def make_clip(raw: RawClip, calib: CameraCalib) -> Clip:
             raise FrameMisfit(f"frame {i} (stamp {int(raw.stamps_ns[i])} ns): {problem}")
     und = calib.undistorter()
     images = np.stack([und.apply(im) for im in raw.images])
-    return Clip(stamps=raw.stamps, images=images, K=und.K, T_BC=calib.T_BC, imu=raw.imu, imu_history=raw.imu_history)
+    return Clip(stamps=raw.stamps, images=images, K=und.K, T_BC=calib.T_BC, imu=raw.imu, imu_history=raw.imu_history,
+                stamps_ns=raw.stamps_ns)
 
 
 def frame_problem(image: np.ndarray) -> str | None:

@@ -23,7 +23,6 @@ from msg_adapters.types import MessageTypes
 from vi3_core.camera import backproject
 from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
-from vi3_ros.clip_buffer import RawClip
 from vi3_ros.settings import Settings
 
 
@@ -84,17 +83,18 @@ class ClipPublisher:
         self.settings, self.types, self._publish = settings, types, publish
         self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
 
-    def geometry(self, raw: RawClip, geometry: Geometry, *, prefix: str, T_OC1: np.ndarray | None = None) -> None:
-        """Poses, depth, points (and the clip TF) of a result; ``prefix`` "init_" for the fast result that cond/ttr
-        refine; with ``T_OC1`` [4,4] (the clip's first camera in odom) poses and points are in ``odom_frame``."""
+    def geometry(self, clip: Clip, geometry: Geometry, *, prefix: str, T_OC1: np.ndarray | None = None) -> None:
+        """Poses, depth, points (and the clip TF) of a result of ``clip`` (its frames' header stamps: ``stamps_ns``);
+        ``prefix`` "init_" for the fast result that cond/ttr refine; with ``T_OC1`` [4,4] (the clip's first camera in
+        odom) poses and points are in ``odom_frame``."""
         fr, out, types = self.settings.frames, self.settings.outputs, self.types
-        stamp = int(raw.stamps_ns[-1])
+        stamp = int(clip.stamps_ns[-1])
         frame = fr.clip_frame if T_OC1 is None else fr.odom_frame
         T_wc = geometry.T_wc if T_OC1 is None else T_OC1 @ geometry.T_wc
         self._publish(prefix + "poses", pose_array(T_wc, stamp_ns=stamp, frame_id=frame, types=types), stamp)
         frames = np.arange(geometry.n) if out.depth_frames == "all" else np.array([geometry.n - 1])
         for i in frames:
-            s = int(raw.stamps_ns[i])
+            s = int(clip.stamps_ns[i])
             self._publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s, frame_id=fr.camera_frame,
                                                            types=types), s)
         frames = np.arange(geometry.n) if out.points_frames == "all" else np.array([geometry.n - 1])
@@ -109,11 +109,11 @@ class ClipPublisher:
             self._publish("tf", tf_message([(T_last_clip, fr.camera_frame, fr.clip_frame, stamp)], types=types),
                           stamp)
 
-    def odom(self, raw: RawClip, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> None:
-        """~/odom (pose and twist of base_frame at the clip's last frame), ~/path (the latest ``path_max_poses``
+    def odom(self, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> None:
+        """~/odom (pose and twist of base_frame at the last frame of ``clip``), ~/path (the latest ``path_max_poses``
         poses of the odom trajectory) and, with ``publish_odom_tf``, TF odom_frame -> base_frame."""
         fr, types = self.settings.frames, self.types
-        stamp = int(raw.stamps_ns[-1])
+        stamp = int(clip.stamps_ns[-1])
         chained = outcome.chained
         T = chained.T_OB[-1]
         gyro = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)])
@@ -121,7 +121,7 @@ class ClipPublisher:
                                        frame_id=fr.odom_frame, child_frame_id=fr.base_frame, types=types), stamp)
         keep = slice(max(len(trajectory.stamps) - self.settings.outputs.path_max_poses, 0), None)
         # The header stamps of the frames (exact ns), kept for the poses the path still shows.
-        self._path_ns.update(zip(clip.stamps.tolist(), raw.stamps_ns.tolist()))
+        self._path_ns.update(zip(clip.stamps.tolist(), clip.stamps_ns.tolist()))
         self._path_ns = {t: self._path_ns[t] for t in trajectory.stamps[keep].tolist()}
         stamps_ns = list(self._path_ns.values())
         self._publish("path", path(trajectory.T_OB[keep], stamp_ns=stamp, frame_id=fr.odom_frame, types=types,
@@ -130,10 +130,11 @@ class ClipPublisher:
             self._publish("tf", tf_message([(T, fr.odom_frame, fr.base_frame, stamp)], types=types), stamp)
 
 
-def clip_status(raw: RawClip, init: InitResult, kind: str, latency_s: float, *, drops: str, clip_frame: str,
-                result: AnchorResult | None = None, decision: OnlineDecision | None = None,
+def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: float, *, drops: str,
+                clip_frame: str, result: AnchorResult | None = None, decision: OnlineDecision | None = None,
                 trajectory: Trajectory | None = None) -> DiagStatus:
-    """The ``~/status`` entry of one result: ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
+    """The ``~/status`` entry of one result of the node's clip ``index``, processed as ``clip`` (the frames it spans:
+    ``t_first``, ``t_last``): ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
     wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
     ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), and with the online
     window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment."""
@@ -143,12 +144,12 @@ def clip_status(raw: RawClip, init: InitResult, kind: str, latency_s: float, *, 
     reason = result_reason(init, result)
     alpha = result.alpha if result is not None else float("nan")
     rel = init.fit.scale_rel_sigma if init.fit is not None else float("nan")
-    values = {"clip": raw.index, "result": kind, "init_status": init.status.value, "reason": reason,
+    values = {"clip": index, "result": kind, "init_status": init.status.value, "reason": reason,
               "scale": f"{init.scale:.6g}", "scale_sigma": f"{init.scale_sigma:.3g}", "scale_rel_sigma": f"{rel:.3g}",
               "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
               "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
-              "bg": _vec(init.bg), "ba": _vec(init.ba), "t_first": f"{raw.stamps[0]:.9f}",
-              "t_last": f"{raw.stamps[-1]:.9f}", "input_drops": drops, "latency_ms": f"{latency_s * 1e3:.1f}"}
+              "bg": _vec(init.bg), "ba": _vec(init.ba), "t_first": f"{clip.stamps[0]:.9f}",
+              "t_last": f"{clip.stamps[-1]:.9f}", "input_drops": drops, "latency_ms": f"{latency_s * 1e3:.1f}"}
     if decision is not None and trajectory is not None:
         values["online"] = decision.describe()
         values["odom_segment"] = len(trajectory.resets)  # 0: the first; each reset starts one (its first frame)

@@ -132,6 +132,15 @@ PARAMS: tuple[Param, ...] = (
             "window", range=(1, 1000)),
     Param("online_bg_window", OnlineOptions, "s; the gyro-bias prior is the median of the clips' "
             "own estimates over this long", range=(0.1, 3600.0)),
+    Param("shared_frames", OnlineOptions, "each clip starts with the last this many frames of the clip before it that "
+          "joined the window, and the two clips' predictions of them (depth, and displacement with 2 or more) link "
+          "their scales; they count in clip_length (hop 0 then starts a clip every (clip_length - shared_frames) * "
+          "stride frames); 0: no links", range=(0, 63)),
+    Param("shared_max_gap", OnlineOptions, "s; the shared frames replace the first frames of a clip that does not "
+          "start with them (clips a busy worker dropped) only when they end at most this long before it",
+          range=(0.01, 60.0)),
+    Param("link_sigma_floor", OnlineOptions, "relative 1-sigma added to every scale link for what the spread of its "
+          "depth blocks cannot show", range=(0.0, 1.0)),
     # clip buffer
     Param("clip_length", ClipBufferOptions, "frames per clip (n)", range=(2, 64)),
     Param("stride", ClipBufferOptions, "use every stride-th input frame", range=(1, 100)),

@@ -45,10 +45,10 @@ from msg_adapters.poses import tf_message_to_list
 from msg_adapters.types import MessageTypes
 from vi3_core.backbones import make_backbone
 from vi3_core.dataset.calib import load_calib
-from vi3_core.errors import CalibrationError
+from vi3_core.errors import CalibrationError, DataError
 from vi3_core.online import OnlineDecision, StreamEstimator
 from vi3_core.threads import use_torch_threads
-from vi3_core.types import AnchorResult, InitResult
+from vi3_core.types import AnchorResult, Clip, InitResult
 from vi3_ros.calibration import Calibration, FrameMisfit, frame_problem, make_clip
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
 from vi3_ros.imu_odom import ImuOdometry
@@ -62,14 +62,19 @@ MAX_IMU_RATE_HZ = 400.0
 
 def buffer_options(settings: Settings) -> ClipBufferOptions:
     """The clip buffer's options of ``settings``: with ``online``, the IMU history covers the bridge from the previous
-    clip (up to ``online_max_bridge``), and the bounded IMU buffer holds that history (at up to MAX_IMU_RATE_HZ) plus
-    a clip."""
+    clip (up to ``online_max_bridge``), the bounded IMU buffer holds that history (at up to MAX_IMU_RATE_HZ) plus a
+    clip, and without a ``hop`` clips start every (clip_length - shared_frames) * stride frames (each shares its first
+    frames with the one before). Raises DataError when shared_frames leaves a clip no frame of its own."""
     opts = settings.buffer
     if not settings.stream.online:
         return opts
+    shared = settings.online.shared_frames
+    if shared >= opts.clip_length:
+        raise DataError(f"parameters: shared_frames {shared} must be smaller than clip_length {opts.clip_length}")
     history = max(opts.imu_history, settings.online.online_max_bridge)
     span = history + (opts.clip_length - 1) * opts.stride * 0.2 + opts.imu_timeout + 1.0  # a clip at 5 Hz or faster
-    return dataclasses.replace(opts, imu_history=history,
+    hop = opts.hop if opts.hop is not None else (opts.clip_length - shared) * opts.stride
+    return dataclasses.replace(opts, imu_history=history, hop=hop,
                                imu_buffer=max(opts.imu_buffer, int(span * MAX_IMU_RATE_HZ)))
 
 
@@ -222,25 +227,25 @@ class Pipeline:
             self._report_skip(raw.index, "image_size_mismatch", str(exc), stamp_ns)
             return
 
-        def on_init(result: AnchorResult) -> None:
-            self.outputs.geometry(raw, result.geometry, prefix="init_")
-            self._publish_status(raw, result.init, "init", time.perf_counter() - t_start, result=result,
+        def on_init(processed: Clip, result: AnchorResult) -> None:
+            self.outputs.geometry(processed, result.geometry, prefix="init_")
+            self._publish_status(raw, processed, result.init, "init", time.perf_counter() - t_start, result=result,
                                  decision=self.stream.decision)
 
         outcome = self.stream.process(clip, on_init=on_init, before_backbone=self._backbone_delay)
         if outcome is None:
             return  # closing: the clip's outputs would be discarded anyway
         latency = time.perf_counter() - t_start
-        chained = outcome.chained
+        chained, clip = outcome.chained, outcome.clip
         if outcome.init.ok and outcome.mode != "none":
             T_OC1 = chained.T_OB[0] @ clip.T_BC if chained is not None and self.settings.frames.outputs_in_odom \
                 else None
-            self.outputs.geometry(raw, outcome.result.geometry, prefix="", T_OC1=T_OC1)
+            self.outputs.geometry(clip, outcome.result.geometry, prefix="", T_OC1=T_OC1)
         if chained is not None:
-            self.outputs.odom(raw, clip, outcome, self.stream.trajectory)
+            self.outputs.odom(clip, outcome, self.stream.trajectory)
             if self.imu_odom is not None:
                 self.imu_odom.restart(outcome.state, self._imu_since)
-        self._publish_status(raw, outcome.init, outcome.mode, latency, result=outcome.result,
+        self._publish_status(raw, clip, outcome.init, outcome.mode, latency, result=outcome.result,
                              decision=outcome.decision)
 
     def _backbone_delay(self) -> bool:
@@ -273,11 +278,12 @@ class Pipeline:
             self._input_drops.clear()
         return text
 
-    def _publish_status(self, raw: RawClip, init: InitResult, kind: str, latency: float, *,
+    def _publish_status(self, raw: RawClip, clip: Clip, init: InitResult, kind: str, latency: float, *,
                         result: AnchorResult | None, decision: OnlineDecision | None) -> None:
-        """~/status (and, for final results, /diagnostics) of one result; ``result`` None when anchoring did not
-        run (data rejected before the backbone); ``decision``: the online window's (None without online)."""
-        status = clip_status(raw, init, kind, latency, drops=self._take_input_drops(),
+        """~/status (and, for final results, /diagnostics) of one result of ``raw`` processed as ``clip``; ``result``
+        None when anchoring did not run (data rejected before the backbone); ``decision``: the online window's (None
+        without online)."""
+        status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
                              trajectory=self.stream.trajectory)
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),

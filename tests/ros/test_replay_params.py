@@ -78,7 +78,7 @@ def test_euroc_config_loads_and_maps_to_buffer_options():
     settings = resolve(load_yaml(REPO / "config" / "euroc.yaml"))
     assert settings.inputs.image_topic == "/cam0/image_raw" and settings.inputs.imu_topic == "/imu0"
     opts = buffer_options(settings)
-    assert (opts.clip_length, opts.stride, opts.clip_hop) == (8, 2, 16)
+    assert (opts.clip_length, opts.stride, opts.clip_hop) == (8, 2, 14)  # each clip shares a frame with the last
     calib = load_calib(REPO / "config" / "euroc_cam0_sensor.yaml")
     np.testing.assert_allclose(calib.K, EUROC_CAM0.K)
     np.testing.assert_allclose(calib.T_BC, EUROC_CAM0.T_BC)

@@ -1,12 +1,14 @@
-"""The ground-truth pose instrument for controlled experiments (``vi3 eval --backbone gt --gt-noise POS_M,ROT_DEG``):
-a clip's true camera poses at an arbitrary model scale with a stated noise (``sim.visual.PoseNoise``), and its true
-depth where the recording has it. It needs the clip's ground truth, so it exists only in the evaluation (the runner
+"""The ground-truth pose instrument for controlled experiments (``vi3 eval --backbone gt --gt-noise POS_M,ROT_DEG
+--gt-depth-noise REL,SMOOTH``): a clip's true camera poses at an arbitrary model scale with a stated noise
+(``sim.visual.PoseNoise``), and its true depth, where the recording has it, at the same model scale with a stated noise
+(``sim.visual.DepthNoise``). It needs the clip's ground truth, so it exists only in the evaluation (the runner
 binds each clip to it): it is an evaluation instrument, never a backbone for the node or replay. It needs no images,
 so it runs on recordings of IMU and ground truth alone.
 
 The model scale of each clip is chosen as a 3DFM normalises a clip: the mean distance of its cameras from the first
 is one model unit; noise is drawn per frame (the first included, then re-anchored at the first frame) from a
-generator seeded by ``seed`` and the clip's first stamp, so a clip gets the same noise in every run.
+generator seeded by ``seed`` and the clip's first stamp, so a clip gets the same noise in every run, and two clips that
+share a frame predict it with independent errors, as two passes of a 3DFM would.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import torch
 from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.dataset.sequence import gt_camera_poses
 from vi3_core.errors import DataError
-from vi3_core.sim.visual import PoseNoise, noisy_poses
+from vi3_core.sim.visual import DepthNoise, PoseNoise, noisy_poses
 from vi3_core.types import Clip
 
 
@@ -27,10 +29,10 @@ class GroundTruthPoses(Backbone):
     name = "gt"
     needs_images = False
 
-    def __init__(self, *, noise: PoseNoise | None = None, seed: int = 0, device: str = "cpu",
-                 dtype: torch.dtype = torch.float32) -> None:
+    def __init__(self, *, noise: PoseNoise | None = None, depth_noise: DepthNoise | None = None, seed: int = 0,
+                 device: str = "cpu", dtype: torch.dtype = torch.float32) -> None:
         super().__init__(device=device, dtype=dtype)
-        self.noise, self.seed = noise or PoseNoise(), int(seed)
+        self.noise, self.depth_noise, self.seed = noise or PoseNoise(), depth_noise or DepthNoise(), int(seed)
         self._clip: Clip | None = None
         self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
@@ -54,7 +56,10 @@ class GroundTruthPoses(Backbone):
         scale = self.last_scale = dist if dist > 0 else 1.0  # metres per model unit
         rng = np.random.default_rng([self.seed, int(round(float(clip.stamps[0]) * 1e6))])
         T = noisy_poses(T_gt, scale=scale, noise=self.noise, rng=rng)
-        depth = clip.gt.depth / scale if clip.gt.depth is not None else np.full((clip.n, 1, 1), np.nan)
+        if clip.gt.depth is not None:
+            depth = self.depth_noise.apply(np.asarray(clip.gt.depth, np.float32) / np.float32(scale), rng)
+        else:
+            depth = np.full((clip.n, 1, 1), np.nan, np.float32)
         return Prediction(R_wc=torch.as_tensor(T[:, :3, :3]), t_wc=torch.as_tensor(T[:, :3, 3]), K=inputs.K.double(),
                           depth=torch.as_tensor(depth, dtype=torch.float32), conf=torch.ones(depth.shape),
                           metric=False)

@@ -19,6 +19,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from vi3_core.eval import coverage
 from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
 from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
 from vi3_core.eval.clip_eval import ClipEval
@@ -227,6 +228,7 @@ def chained_summary(run) -> dict:
     own = independent_claims(run)
     return _plain({
         "applicable": run.metrics is not None, "reason": run.reason, **m, "resets": run.resets,
+        **(run.coverage.as_dict() if run.coverage is not None else {}),
         "scale_err_median": median_after_skip(run.scale_err),
         "independent_scale_err_median": median_after_skip(run.independent_scale_err),
         "independent_claimed_outliers": own.outliers(), "independent_sigma_calibration": own.calibration(),
@@ -255,6 +257,7 @@ def pool_chained(named_runs: Sequence[tuple[str, object]]) -> dict:
            for key in ("ate_m", "drift_pct", "gravity_err_deg")},
         "segments": sum(len(r.metrics.segments) for r in scored),
         "resets": sum(r.resets for _, r in named_runs),
+        **coverage.pool(r.coverage for _, r in named_runs if r.coverage is not None),
     })
 
 
@@ -268,6 +271,19 @@ def _claims_line(prefix: str, outliers: dict, calibration: dict) -> str:
             f"{format_calibration(calibration)}")
 
 
+def _coverage_line(chained: dict) -> str:
+    """How soon and how often a chained run (or a pool of them) claimed in flight, and its scale links."""
+    flight, links = chained.get("in_flight"), chained.get("links")
+    if flight is None:
+        return ""
+    first = chained.get("first_claim_after_motion_s", chained.get("first_claim_after_motion_s_max"))
+    share = f"{100 * flight['share']:.0f} %" if flight["share"] is not None else "--"
+    return (f"in flight (from {coverage.IN_FLIGHT_AFTER_S:g} s after motion starts): {flight['claimed']} of "
+            f"{flight['clips']} clips claimed ({share}); first claim "
+            + (f"{first:.1f} s after motion starts" if first is not None else "never")
+            + f"; scale links: {links['accepted']} used, {links['rejected']} refused, {links['none']} none")
+
+
 def format_chained(chained: dict, summary: dict) -> str:
     """The chained trajectory's metrics (per segment when there are several), the per-clip scale errors and the
     claims of the chained clips (``summary``: their ``summarise``) beside those of the clips' own initialisation."""
@@ -275,7 +291,7 @@ def format_chained(chained: dict, summary: dict) -> str:
     scales = _one_row(chained, ("scale_err_median", "independent_scale_err_median", "resets"))
     claims = "\n".join([_claims_line("chained:", summary["claimed_outliers"], summary["sigma_calibration"]),
                         _claims_line("own init:", chained["independent_claimed_outliers"],
-                                     chained["independent_sigma_calibration"])])
+                                     chained["independent_sigma_calibration"]), _coverage_line(chained)])
     if not chained["applicable"]:
         return f"{title}: {chained['reason']}\n{scales}\n{claims}"
     traj = _one_row(chained, ("ate_m", "drift_pct", "gravity_err_deg", "distance_m", "frames", "segments"))
@@ -296,7 +312,7 @@ def format_pooled_chained(pooled: dict) -> str:
     lines = [f"Chained odom trajectories, {pooled['sequences']} sequences pooled ({pooled['scored']} scored)",
              _one_row(pooled, keys),
              _claims_line("own init:", pooled["independent_claimed_outliers"],
-                          pooled["independent_sigma_calibration"])]
+                          pooled["independent_sigma_calibration"]), _coverage_line(pooled)]
     lines += [f"not scored: {s['sequence']}: {s['reason']}" for s in pooled["not_scored"]]
     return "\n".join(lines)
 

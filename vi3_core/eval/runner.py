@@ -27,9 +27,10 @@ from vi3_core.eval import metrics
 from vi3_core.eval.chained import ChainedMetrics, chained_metrics, gt_path_length
 from vi3_core.eval.claims import scale_error
 from vi3_core.eval.clip_eval import ClipEval
+from vi3_core.eval.coverage import Coverage, coverage, motion_start
 from vi3_core.init import InitOptions
 from vi3_core.init.oracle import gt_init_state
-from vi3_core.online import OnlineOptions, StreamEstimator, StreamOptions
+from vi3_core.online import OnlineDecision, OnlineOptions, StreamEstimator, StreamOptions
 from vi3_core.online.stream import INIT_SOURCES
 from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Clip, Geometry
 
@@ -95,6 +96,8 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
     if hasattr(stream.backbone, "bind"):  # the ground-truth pose instrument predicts from the clip's ground truth
         stream.backbone.bind(clip)
     outcome = stream.process(clip)
+    if outcome.clip is not clip:  # the stream put shared frames in place of its first ones
+        clip, indices = outcome.clip, None
     result, init = outcome.result, outcome.init
     T_gt = gt_camera_poses(clip.gt, clip.T_BC)
     g_b1, _, _ = gt_init_state(clip.gt)
@@ -127,9 +130,14 @@ def clip_label(sequence: str, idx: np.ndarray) -> str:
     return f"sequence {sequence!r}, clip of frames {int(idx[0])}-{int(idx[-1])}"
 
 
-def clip_indices(n_frames: int, *, options: EvalOptions) -> list[np.ndarray]:
-    """Frame indices of the clips to evaluate (``sample_clips``), thinned evenly to ``max_clips``."""
-    clips = sample_clips(n_frames, n=options.clip_length, stride=options.stride, mode=options.clips, hop=options.hop)
+def clip_indices(n_frames: int, *, options: EvalOptions, chained: bool = False) -> list[np.ndarray]:
+    """Frame indices of the clips to evaluate (``sample_clips``), thinned evenly to ``max_clips``. Chained sliding
+    clips without a ``hop`` start every (clip_length - shared_frames) * stride frames, as the node's do: each shares
+    its first frames with the clip before it."""
+    hop = options.hop
+    if hop is None and chained:
+        hop = (options.clip_length - (options.online_options or OnlineOptions()).shared_frames) * options.stride
+    clips = sample_clips(n_frames, n=options.clip_length, stride=options.stride, mode=options.clips, hop=hop)
     if options.max_clips is not None and len(clips) > options.max_clips:
         keep = np.unique(np.linspace(0, len(clips) - 1, options.max_clips).round().astype(int))
         clips = [clips[i] for i in keep]
@@ -145,14 +153,14 @@ class EvaluationStopped(Vi3Error):
         self.evals, self.online = evals, online
 
 
-def check_sequence(seq: Sequence, *, options: EvalOptions) -> list[np.ndarray]:
-    """The clips ``evaluate_sequence`` / ``evaluate_online`` would evaluate; raises DataError when ``seq`` cannot be
-    evaluated (no ground truth, no calibration, too short), before any clip is."""
+def check_sequence(seq: Sequence, *, options: EvalOptions, chained: bool = False) -> list[np.ndarray]:
+    """The clips ``evaluate_sequence`` (``evaluate_online``: ``chained``) would evaluate; raises DataError when ``seq``
+    cannot be evaluated (no ground truth, no calibration, too short), before any clip is."""
     if seq.gt is None:
         raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
     if seq.calib is None:
         raise DataError(f"sequence {seq.name!r} has no camera calibration (pass --calib for bags without one)")
-    return clip_indices(len(seq.stamps), options=options)
+    return clip_indices(len(seq.stamps), options=options, chained=chained)
 
 
 def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEval],
@@ -200,7 +208,8 @@ class OnlineRun:
     state (every reset the decision log records); scale_err [n_clips]: |Scale (Traj.) - 1| of each chained clip
     (NaN: no value); independent_status, independent_scale_err, independent_rel_sigma [n_clips]: each clip's own
     GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale sigma;
-    metrics: None when the trajectory cannot be scored, ``reason`` then says why."""
+    metrics: None when the trajectory cannot be scored, ``reason`` then says why; coverage: how soon and how often
+    the run claimed in flight, and its scale links (``vi3_core.eval.coverage``)."""
 
     stamps: np.ndarray
     T_OB: np.ndarray
@@ -214,6 +223,7 @@ class OnlineRun:
     independent_rel_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     metrics: ChainedMetrics | None = None
     reason: str = ""
+    coverage: Coverage | None = None
 
 
 def contiguity_gap(seq: Sequence, clips: list[np.ndarray], max_gap_s: float) -> str:
@@ -240,7 +250,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     options = options or EvalOptions()
     if options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
-    sampled = check_sequence(seq, options=options)
+    sampled = check_sequence(seq, options=options, chained=True)
     clips = sampled if clips is None else clips
     stream = options.stream(backbone, online=True)
     max_bridge = stream.online_options.online_max_bridge
@@ -251,6 +261,8 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
             # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
             clip = make_clip(seq, idx, history_s=max_bridge, with_images=backbone.needs_images)
             ev = evaluate_clip(clip, stream, indices=idx)
+            if len(ev.stamps) != len(idx) or not np.array_equal(ev.stamps, seq.stamps[idx]):
+                ev.indices = np.searchsorted(seq.stamps, ev.stamps)
         except (Vi3Error, ValueError, OSError) as err:
             raise _stopped(seq, idx, err, evals, _finish(seq, stream, run, evals, clips)) from err
         run.decisions.append(ev.decision.describe())
@@ -278,6 +290,10 @@ def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[
     run.independent_scale_err = np.where(ok, np.abs(base * scale - 1.0), np.nan)
     with np.errstate(divide="ignore", invalid="ignore"):
         run.independent_rel_sigma = np.array([o.scale_sigma for o in own], dtype=np.float64) / scale
+    t0 = np.array([e.stamps[0] for e in evals])
+    start = motion_start(seq.gt.t, seq.gt.v_WB, float(t0[0])) if evals else float("nan")
+    run.coverage = coverage(t0, [e.stamps[-1] for e in evals], [e.ok for e in evals],
+                            [_link_state(e.decision) for e in evals], start)
     run.reason = contiguity_gap(seq, clips, stream.online_options.online_max_bridge)
     if not run.reason and len(traj.stamps) < 2:
         run.reason = (f"no trajectory: {len(traj.stamps)} chained poses ({sum(e.ok for e in evals)} of "
@@ -286,3 +302,11 @@ def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[
                                                           segment_starts=run.segment_starts,
                                                           path_length=functools.partial(gt_path_length, seq.gt))
     return run
+
+
+def _link_state(decision: OnlineDecision) -> str:
+    """"linked", "rejected" or "none" for a clip that joined the window; "" for one that did not."""
+    if not decision.joined:
+        return ""
+    return "linked" if decision.link is not None else "rejected" if decision.link_note.startswith("rejected") \
+        else "none"

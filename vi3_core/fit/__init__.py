@@ -5,9 +5,9 @@ the online window (``online``) both solve with these."""
 
 from vi3_core.fit.layout import PriorLayout, StateLayout
 from vi3_core.fit.marginalise import marginalise
-from vi3_core.fit.metric_fit import FitClip, FitResult, FitState, MetricFit, fit_stamps
+from vi3_core.fit.metric_fit import FitClip, FitResult, FitState, MetricFit, ScaleLink, fit_stamps
 from vi3_core.fit.noise import ImuNoiseModel
 from vi3_core.fit.prior import GaussianPrior
 
 __all__ = ["FitClip", "FitResult", "FitState", "GaussianPrior", "ImuNoiseModel", "MetricFit", "PriorLayout",
-           "StateLayout", "fit_stamps", "marginalise"]
+           "ScaleLink", "StateLayout", "fit_stamps", "marginalise"]

@@ -8,8 +8,8 @@ Parameter change dx (``StateLayout``), in this order:
     shared:   g (2: gravity's tangent plane, its norm is fixed), ba (3, m/s^2, IMU frame), bg (3, rad/s, IMU frame)
     per clip: lam (1: 1 / scale), v (3: first-frame velocity in B0, m/s), c (3: offset of the clip's first frame,
               model units)
-Prior vector z (``PriorLayout``): g (3, m/s^2, B0), ba (3), bg (3), v (3, m/s, B0: the velocity of the clip the prior
-is written at).
+Prior vector z (``PriorLayout``): g (3, m/s^2, B0), ba (3), bg (3), v (3, m/s, B0), lam (1): the velocity and 1 / scale
+of the clip the prior is written at (its scale is what a link to the clips before carries forward).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 SHARED: tuple[tuple[str, int], ...] = (("g", 2), ("ba", 3), ("bg", 3))
 PER_CLIP: tuple[tuple[str, int], ...] = (("lam", 1), ("v", 3), ("c", 3))
-PRIOR: tuple[tuple[str, int], ...] = (("g", 3), ("ba", 3), ("bg", 3), ("v", 3))
+PRIOR: tuple[tuple[str, int], ...] = (("g", 3), ("ba", 3), ("bg", 3), ("v", 3), ("lam", 1))
 
 
 def _offsets(blocks: tuple[tuple[str, int], ...]) -> tuple[dict[str, slice], int]:
@@ -108,7 +108,7 @@ class StateLayout:
 
     def prior_columns(self, k: int) -> np.ndarray:
         """The columns a prior written at clip k speaks about, in ``PriorLayout`` order (g's tangent for its 3)."""
-        return np.r_[self.g, self.ba, self.bg, self.v(k)]
+        return np.r_[self.g, self.ba, self.bg, self.v(k), self.lam(k)]
 
     def prior_jacobian(self, k: int, GB: np.ndarray) -> np.ndarray:
         """[N_PRIOR, n]: d z / d dx for the prior vector z at clip k; GB [3,2] = |g| times g's tangent basis."""
@@ -117,23 +117,26 @@ class StateLayout:
         Jz[PriorLayout.ba, self.ba] = np.eye(3)
         Jz[PriorLayout.bg, self.bg] = np.eye(3)
         Jz[PriorLayout.v, self.v(k)] = np.eye(3)
+        Jz[PriorLayout.lam, self.lam(k)] = 1.0
         return Jz
 
 
 class PriorLayout:
-    """Slices of the prior vector z (``PRIOR``): ``g``, ``ba``, ``bg``, ``v``; ``n`` entries."""
+    """Slices of the prior vector z (``PRIOR``): ``g``, ``ba``, ``bg``, ``v``, ``lam``; ``n`` entries."""
 
     g = _PRIOR["g"]
     ba = _PRIOR["ba"]
     bg = _PRIOR["bg"]
     v = _PRIOR["v"]
+    lam = _PRIOR["lam"]
     n = N_PRIOR
 
     @staticmethod
-    def vector(g: np.ndarray, ba: np.ndarray, bg: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def vector(g: np.ndarray, ba: np.ndarray, bg: np.ndarray, v: np.ndarray, lam: float) -> np.ndarray:
         """z [n] from its parts."""
         z = np.empty(N_PRIOR)
-        z[PriorLayout.g], z[PriorLayout.ba], z[PriorLayout.bg], z[PriorLayout.v] = g, ba, bg, v
+        Z = PriorLayout
+        z[Z.g], z[Z.ba], z[Z.bg], z[Z.v], z[Z.lam] = g, ba, bg, v, lam
         return z
 
 

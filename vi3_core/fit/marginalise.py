@@ -15,15 +15,17 @@ from vi3_core.fit.prior import GaussianPrior, sqrt_of_info
 
 def marginalise(fit: MetricFit, result: FitResult, drop: int,
                 priors: tuple[GaussianPrior, ...] = ()) -> GaussianPrior:
-    """What clips 0..drop-1 of ``fit`` say about (g, ba, bg, v_drop) once their own unknowns are eliminated: their
-    visual rows, the velocity ties up to clip ``drop`` and ``priors`` (the bias priors are left out: every fit adds its
-    own), linearised at ``result`` and reduced by the Schur complement, as a Gaussian prior in clip ``drop``'s first
-    body frame for the window that starts there."""
+    """What clips 0..drop-1 of ``fit`` say about (g, ba, bg, v_drop, lam_drop) once their own unknowns are eliminated:
+    their visual rows, the velocity ties and scale links up to clip ``drop`` and ``priors`` (the bias priors are left
+    out: every fit adds its own), linearised at ``result`` and reduced by the Schur complement, as a Gaussian prior in
+    clip ``drop``'s first body frame for the window that starts there. Clip ``drop``'s scale is in it through the scale
+    link to clip drop-1 (nothing without one): the scale chain goes on past the window."""
     if not 0 < drop < fit.K:
         raise ValueError(f"marginalise: drop must be in 1..{fit.K - 1}, got {drop}")
     L = fit.layout
     y, A, rows, B = fit.linearise(result.state, result.sigma_v, priors)
     names = [f"vis {k}" for k in range(drop)] + [f"link {k}" for k in range(1, drop + 1)]
+    names += [f"scale {k}" for k in range(1, drop + 1) if f"scale {k}" in rows]
     names += [f"prior {i}" for i in range(len(priors))]
     sel = np.concatenate([np.array(rows[name], dtype=int) for name in names])
     H, b = A[sel].T @ A[sel], A[sel].T @ y[sel]  # cost 1/2 |y + A dx|^2 of the parameter change dx
@@ -47,7 +49,7 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     # inflated); the biases walk while the prior is carried to clip ``drop``'s first frame.
     offset = np.linalg.lstsq(sqrt_H.T, b_m, rcond=None)[0]
     vf = math.sqrt(result.variance_factor)
-    prior = GaussianPrior(PriorLayout.vector(s.g, s.ba, s.bg, s.v[drop]), sqrt_H @ P / vf, offset / vf)
+    prior = GaussianPrior(PriorLayout.vector(s.g, s.ba, s.bg, s.v[drop], s.lam[drop]), sqrt_H @ P / vf, offset / vf)
     prior = prior.widened(fit.noise.accel_bias_walk**2 * dt, fit.noise.gyro_bias_walk**2 * dt)
     phi = fit.pre.J.phi_bg[f]
     return prior.moved(so3.exp(phi @ (s.bg - fit.bg0)) @ fit.pre.R[f], phi)

@@ -36,6 +36,7 @@ with ``ImuNoiseModel.rel_floor`` for what the model leaves out.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,6 +58,15 @@ class FitClip:
     stamps: np.ndarray
     T_wc: np.ndarray
     sigma_v: float | None = None
+
+
+@dataclass(frozen=True)
+class ScaleLink:
+    """What two consecutive clips' predictions of their shared frames say about their model scales: log_ratio =
+    log(lam_k / lam_(k-1)) (the later clip's over the earlier's) and its 1-sigma (``vi3_core.online.link``)."""
+
+    log_ratio: float
+    sigma: float
 
 
 @dataclass
@@ -84,7 +94,8 @@ class FitResult:
     visual residual and its degrees of freedom; variance_factor: chi2 / dof over all rows (inflates cov when > 1);
     cov: covariance of the parameters (``StateLayout(K)``'s columns); tangent [3,2]: the basis of
     g's tangent plane that cov refers to; converged: Gauss-Newton met its tolerance; link_chi2, link_dof [K-1]: the
-    velocity ties' whitened residual and degrees of freedom (tie k-1 joins clips k-1 and k).
+    velocity ties' whitened residual and degrees of freedom (tie k-1 joins clips k-1 and k); scale_chi2, scale_dof
+    [K-1]: the same of the scale links (NaN where clips k-1 and k have none).
     """
 
     state: FitState
@@ -99,6 +110,8 @@ class FitResult:
     converged: bool
     link_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     link_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    scale_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    scale_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def layout(self) -> StateLayout:
@@ -109,7 +122,7 @@ class FitResult:
         covariance through its tangent plane)."""
         s = self.state
         J = self.layout.prior_jacobian(k, np.linalg.norm(s.g) * self.tangent)
-        return PriorLayout.vector(s.g, s.ba, s.bg, s.v[k]), J @ self.cov @ J.T
+        return PriorLayout.vector(s.g, s.ba, s.bg, s.v[k], s.lam[k]), J @ self.cov @ J.T
 
     def state_sigma(self, k: int) -> tuple[float, float]:
         """(rad, m/s): the largest 1-sigma of gravity's direction and of clip k's first-frame velocity (any axis)."""
@@ -129,13 +142,20 @@ class MetricFit:
 
     pre: ``preintegrate(imu, fit_stamps(clips), bg, jacobians=True)``, B0 at its first stamp; its bg is the prior's
     mean and the linearisation point of the gyro bias, and bg_sigma (rad/s, floored at ``noise.gyro_bias_sigma``)
-    that estimate's 1-sigma; T_BC [4,4]."""
+    that estimate's 1-sigma; T_BC [4,4]; scale_links [K-1]: the ``ScaleLink`` between clips k-1 and k at k-1, or
+    None where they have none (empty: none at all)."""
 
     def __init__(self, clips: list[FitClip], pre: Preintegration, T_BC: np.ndarray, *, noise: ImuNoiseModel,
-                 gravity_norm: float, bg_sigma: float = 0.0) -> None:
+                 gravity_norm: float, bg_sigma: float = 0.0,
+                 scale_links: Sequence[ScaleLink | None] = ()) -> None:
         if pre.J is None or not np.array_equal(pre.stamps, fit_stamps(clips)):
             raise ValueError("MetricFit: pre must be preintegrate(imu, fit_stamps(clips), bg, jacobians=True)")
+        if scale_links and len(scale_links) != len(clips) - 1:
+            raise ValueError(f"MetricFit: {len(scale_links)} scale links for {len(clips)} clips (need one per pair)")
         self.clips, self.noise, self.G, self.K = clips, noise, gravity_norm, len(clips)
+        # the scale links as (k, log ratio, sigma): a residual (log lam_k - log lam_(k-1) - log ratio) / sigma each
+        self.scale_links = [(k, link.log_ratio, link.sigma) for k, link in enumerate(scale_links, start=1)
+                            if link is not None]
         self.bg0 = pre.bg
         self.bg_sigma = max(float(bg_sigma), noise.gyro_bias_sigma)
         T_BC = np.asarray(T_BC, dtype=np.float64)
@@ -186,7 +206,7 @@ class MetricFit:
         GB = G * B
         dbg = s.bg - self.bg0
         lk = self.links
-        m = lk.row + 3 * (K - 1) + 6 + sum(prior.sqrt_info.shape[0] for prior in priors)
+        m = lk.row + 3 * (K - 1) + len(self.scale_links) + 6 + sum(prior.sqrt_info.shape[0] for prior in priors)
         y, A = np.empty(m), np.zeros((m, L.n))
         rows = {}
         own = StateLayout(1)  # a clip's Jacobian block: the shared unknowns, then its own
@@ -220,13 +240,19 @@ class MetricFit:
                 A_l[k - 1, :, L.v(k)], A_l[k - 1, :, L.v(k - 1)] = w[k - 1] * _EYE3, -w[k - 1] * _EYE3
                 rows[f"link {k}"] = range(r0 + 3 * (k - 1), r0 + 3 * k)
             r0 += 3 * (K - 1)
+        for k, log_ratio, sigma in self.scale_links:  # the scale chain through shared frames
+            lam1, lam0 = abs(s.lam[k]), abs(s.lam[k - 1])
+            y[r0] = (math.log(lam1) - math.log(lam0) - log_ratio) / sigma
+            A[r0, L.lam(k)], A[r0, L.lam(k - 1)] = 1.0 / (lam1 * sigma), -1.0 / (lam0 * sigma)
+            rows[f"scale {k}"] = range(r0, r0 + 1)
+            r0 += 1
         # ba ~ N(0, accel_bias_sigma^2), bg ~ N(bg0, bg_sigma^2)
         y[r0:r0 + 3], y[r0 + 3:r0 + 6] = s.ba / self.noise.accel_bias_sigma, dbg / self.bg_sigma
         A[r0:r0 + 6] = self._bias_rows
         rows["bias"] = range(r0, r0 + 6)
         r0 += 6
         if priors:
-            z = PriorLayout.vector(s.g, s.ba, s.bg, s.v[0])
+            z = PriorLayout.vector(s.g, s.ba, s.bg, s.v[0], s.lam[0])
             Jz = L.prior_jacobian(0, GB)
             for i, prior in enumerate(priors):
                 r1 = r0 + prior.sqrt_info.shape[0]
@@ -369,6 +395,10 @@ class MetricFit:
         chi2, link_chi2 = ([float((y[r.start:r.stop] ** 2).sum()) for r in group] for group in (vis, links))
         dof, link_dof = ([max(float(len(r) - leverage[r.start:r.stop].sum()), 1e-3) for r in group]
                          for group in (vis, links))
+        scale_chi2, scale_dof = np.full(max(self.K - 1, 0), np.nan), np.full(max(self.K - 1, 0), np.nan)
+        for k, _, _ in self.scale_links:
+            r = rows[f"scale {k}"].start
+            scale_chi2[k - 1], scale_dof[k - 1] = y[r] ** 2, max(1.0 - leverage[r], 1e-3)
         dof_total = max(float(len(y) - leverage.sum()), 1.0)
         vf = max(1.0, float(y @ y) / dof_total)
         lam = s.lam
@@ -380,7 +410,8 @@ class MetricFit:
         scale[lam > 0] = 1.0 / lam[lam > 0]
         return FitResult(state=s, scale=scale, scale_rel_sigma=rel, sigma_v=sigma_v.copy(), chi2=np.array(chi2),
                          dof=np.array(dof), variance_factor=vf, cov=cov * vf, tangent=B, converged=converged,
-                         link_chi2=np.array(link_chi2), link_dof=np.array(link_dof))
+                         link_chi2=np.array(link_chi2), link_dof=np.array(link_dof), scale_chi2=scale_chi2,
+                         scale_dof=scale_dof)
 
 
 @dataclass(frozen=True)
@@ -428,4 +459,4 @@ _NOT_LAM = np.delete(np.arange(N_CLIP), _LAM)
 _HAT_E = so3.hat(np.eye(3))  # [3,3,3]: hat of each axis
 
 
-__all__ = ["FitClip", "FitResult", "FitState", "MetricFit", "fit_stamps"]
+__all__ = ["FitClip", "FitResult", "FitState", "MetricFit", "ScaleLink", "fit_stamps"]

@@ -31,8 +31,9 @@ from vi3_core.init import InitOptions, initialise_clip, validate
 from vi3_core.init.gyro_bias import body_rotations, rotation_check
 from vi3_core.init.initializer import rotation_failure
 from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
+from vi3_core.online.link import MeasuredLink, SharedFrames, measure_link
 from vi3_core.online.options import OnlineOptions
-from vi3_core.online.window import Member, Window
+from vi3_core.online.window import Member, Solution, Window
 from vi3_core.preintegration import preintegrate
 from vi3_core.threads import single_blas_thread
 from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus, ScaleFit
@@ -66,8 +67,9 @@ class Placement:
 class OnlineDecision:
     """What the estimator did with a clip: window size (clips fitted jointly, 0: none) and span (s), whether a marginal
     prior from earlier clips was used, rejected {name: reason} ("clip": the clip itself), reset reason ("" if none),
-    and ``own``: the clip's own GT-free initialisation (what the paper's per-clip pipeline with the error model would
-    output; None before the clip was seen)."""
+    ``own``: the clip's own GT-free initialisation (what the paper's per-clip pipeline with the error model would
+    output; None before the clip was seen), whether the clip ``joined`` the window, the scale ``link`` to the clip
+    before it that the window fit used (None: none) and ``link_note``, what became of a link otherwise."""
 
     window: int = 0
     span_s: float = 0.0
@@ -75,9 +77,22 @@ class OnlineDecision:
     rejected: dict[str, str] = field(default_factory=dict)
     reset: str = ""
     own: InitResult | None = None
+    joined: bool = False
+    link: MeasuredLink | None = None
+    link_note: str = ""
+
+    @property
+    def earned(self) -> str:
+        """How the clip's scale was earned: "linked" (through the frames it shares with the clip before it, and that
+        clip's window), "window" (the window's IMU ties alone) or "own" (the clip alone: a new window)."""
+        return "linked" if self.link is not None else "window" if self.window > 1 else "own"
 
     def describe(self) -> str:
         parts = [f"window {self.window} clips over {self.span_s:.1f} s; prior: {'yes' if self.prior else 'none'}"]
+        if self.joined:
+            parts.append(f"scale: {self.earned}" + (f" ({self.link.describe()})" if self.link is not None else ""))
+        if self.link_note:
+            parts.append(f"link: {self.link_note}")
         parts += [f"{name} rejected: {why}" for name, why in sorted(self.rejected.items())]
         if self.reset:
             parts.append(f"reset: {self.reset}")
@@ -120,6 +135,7 @@ class OnlineEstimator:
         self._window_claimed = False  # the window (since its last restart) has claimed a scale
         self._last_start: float | None = None  # first frame of the previous clip seen, s
         self._pending: float | None = None  # first stamp of the clip ``initialise`` saw last
+        self.shared: SharedFrames | None = None  # the last frames of the newest clip in the window
 
     @property
     def g_O(self) -> np.ndarray:
@@ -192,6 +208,36 @@ class OnlineEstimator:
         self.last = replace(decision, own=own)
         return result
 
+    def _link(self, clip: Clip, geometry: Geometry, sigma_v: float) -> tuple[MeasuredLink | None, str]:
+        """The link of ``clip`` (predicted as ``geometry``, its own visual noise ``sigma_v``) to the clip whose last
+        frames are ``shared``, when it starts with them; else None and why (empty without ``shared_frames``)."""
+        k, shared = self.options.shared_frames, self.shared
+        if not k:
+            return None, ""
+        if shared is None:
+            return None, "none (no earlier clip in the window)"
+        if not shared.starts(clip):
+            return None, (f"none (the clip does not start with the {k} frame(s) kept from the clip at "
+                          f"{shared.clip_start:.3f} s)")
+        measured = measure_link(shared, geometry, sigma_v, sigma_floor=self.options.link_sigma_floor)
+        return (None, f"none ({measured})") if isinstance(measured, str) else (measured, "")
+
+    def _refused_link(self, sol: Solution) -> str:
+        """Why the newest member's scale link is inconsistent with the window fit ``sol`` ("" when it is not, or is
+        not used): its standardised residual, a chi-square of one degree of freedom, below ``online_consistency_p``.
+        A link that alone fixes its clip's scale (leverage near one) cannot be tested and is taken."""
+        k = len(sol.members) - 1
+        if not sol.linked(k):
+            return ""
+        chi2, dof = float(sol.result.scale_chi2[k - 1]), float(sol.result.scale_dof[k - 1])
+        if dof < 0.05:
+            return ""
+        p = float(stats.chi2.sf(chi2 / dof, 1))
+        if p >= self.options.online_consistency_p:
+            return ""
+        return (f"the window puts the scale ratio {math.sqrt(chi2 / dof):.1f} sigma from the measured one (p = {p:.1e}"
+                f" < online_consistency_p {self.options.online_consistency_p:g})")
+
     def _restart_reason(self, t1: float, t_end: float) -> str:
         """Why the window cannot go on with a clip spanning [t1, t_end] ("" when it can)."""
         if not len(self.window):
@@ -234,8 +280,11 @@ class OnlineEstimator:
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable: {why}", bg=bg,
                                            fit=own, diagnostics=dict(free.diagnostics)),
                                 replace(decision, rejected={"clip": why}), free)
+        measured, link_note = self._link(clip, geometry, own.sigma_v)
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
-                        sigma_v=own.sigma_v, lam=own.lam, v=np.asarray(own.v1), g=np.asarray(free.g))
+                        sigma_v=own.sigma_v, lam=own.lam, v=np.asarray(own.v1), g=np.asarray(free.g),
+                        link=measured.link if measured else None,
+                        link_to=measured.clip_start if measured else float("nan"))
         reset = self._restart_reason(t1, t_end)
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)
@@ -244,6 +293,10 @@ class OnlineEstimator:
         self._last_start = t1
         sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
         k = len(sol.members) - 1
+        refused = self._refused_link(sol)
+        if refused:
+            measured, member.link, link_note = None, None, f"rejected: {refused}"
+            sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
         res = sol.result
         chi2 = float(res.chi2[k] + (res.link_chi2[k - 1] if k else 0.0))
         dof = float(res.dof[k] + (res.link_dof[k - 1] if k else 0.0))
@@ -266,8 +319,13 @@ class OnlineEstimator:
             k, res = 0, sol.result
         self._rejects = 0
         self.window.commit(sol)
+        if self.options.shared_frames:
+            self.shared = SharedFrames.of(clip, geometry, k=self.options.shared_frames, sigma_v=own.sigma_v)
+        if measured is not None and not sol.linked(k):  # the clip it links to left the window (a restart)
+            measured, link_note = None, "not used: the window restarted"
         span = float(sol.members[-1].stamps[-1] - sol.members[0].stamps[0])
-        decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset)
+        decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset, joined=True,
+                                  link=measured, link_note=link_note)
         g_k, v_k = sol.frame_state(k)
         s, rel = float(res.scale[k]), float(res.scale_rel_sigma[k])
         g_sigma, v_sigma = res.state_sigma(k)

@@ -23,7 +23,15 @@ class OnlineOptions:
         chi-square tail probability below this is inconsistent with the window: rejected and named, the window
         unchanged;
     online_max_rejects: that many inconsistent clips in a row restart the window from the current clip;
-    online_bg_window: s; the gyro-bias prior is the median of the clips' own (rotation-based) estimates of this long.
+    online_bg_window: s; the gyro-bias prior is the median of the clips' own (rotation-based) estimates of this long;
+    shared_frames: each clip starts with the last this many frames of the clip before it that joined the window, so
+        the two are linked by a scale ratio measured on the shared frames (``vi3_core.online.link``); they count in
+        the clip's length (the node's clips then start every (clip_length - shared_frames) * stride frames); 0: no
+        links, every clip's scale tied to the others through the IMU only;
+    shared_max_gap: s; the shared frames replace the first ones of a clip that does not start with them (clips a busy
+        worker dropped in between) only when they end at most this long before the clip's own frames, so the backbone
+        still sees overlapping views; otherwise the clip is not linked;
+    link_sigma_floor: relative 1-sigma added to every link for what the spread of its depth blocks cannot show.
     """
 
     online_window: float = 7.0
@@ -33,11 +41,16 @@ class OnlineOptions:
     online_consistency_p: float = 1e-3
     online_max_rejects: int = 3
     online_bg_window: float = 20.0
+    shared_frames: int = 1
+    shared_max_gap: float = 1.0
+    link_sigma_floor: float = 0.005
 
     def __post_init__(self) -> None:
         positive = ("online_window", "online_max_clips", "online_max_bridge", "online_max_bridge_sigma",
-                    "online_consistency_p", "online_max_rejects", "online_bg_window")
+                    "online_consistency_p", "online_max_rejects", "online_bg_window", "shared_max_gap")
         bad = [name for name in positive if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0)]
+        bad += [name for name in ("shared_frames", "link_sigma_floor")
+                if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0)]
         if bad or not self.online_consistency_p < 1.0 or self.online_max_clips < 2:
             raise ValueError(f"OnlineOptions: {', '.join(bad) or 'online_consistency_p < 1, online_max_clips >= 2'} "
                              f"violated by {self}")

@@ -1,7 +1,9 @@
 """``StreamEstimator``: the one per-clip loop of a camera + IMU stream, shared by the node, replay and ``vi3 eval``.
 
-Per clip: the initialisation's data checks (a clip they reject costs no inference), the backbone and the anchoring
-mode (``vi3_core.anchor.anchor``) with the stream's initialisation, then the clip's place in the odom trajectory.
+Per clip: with ``shared_frames``, the last frames of the clip before it in the window in place of its first ones when
+clips in between were dropped (``_compose``); the initialisation's data checks (a clip they reject costs no
+inference); the backbone and the anchoring mode (``vi3_core.anchor.anchor``) with the stream's initialisation; then
+the clip's place in the odom trajectory.
 The initialisation is the online window's (``OnlineEstimator``: gravity, biases and velocity carried across clips,
 the clips chained into odom) with ``online``; every clip on its own as in the paper without it; or, for evaluation,
 the oracle from the clip's ground truth. ``process`` returns everything the clip changed as a ``ClipOutcome``.
@@ -46,6 +48,7 @@ class StreamOptions:
 class ClipOutcome:
     """What one clip changed.
 
+    clip: the clip as processed (with the shared frames in place of its first ones where ``_compose`` put them);
     init: the clip's initialisation (the window's with ``online``), also when the backbone did not run; result: the
     final ``AnchorResult`` (None when the data checks rejected the clip before the backbone); fast: the init-mode
     result that ``cond``/``ttr`` refine (None in ``init`` mode or when the init is not ok); decision: the online
@@ -53,6 +56,7 @@ class ClipOutcome:
     (None unless it was chained); state: the odom state after the clip, where IMU-rate propagation starts (None
     before the first chained clip); segment: the odom segment the trajectory is in (0: the first)."""
 
+    clip: Clip
     init: InitResult
     result: AnchorResult | None = None
     fast: AnchorResult | None = None
@@ -95,18 +99,19 @@ class StreamEstimator:
         """The online window's decision on the latest clip it initialised (None without ``online``)."""
         return self.window.last if self.window is not None else None
 
-    def process(self, clip: Clip, *, on_init: Callable[[AnchorResult], None] | None = None,
+    def process(self, clip: Clip, *, on_init: Callable[[Clip, AnchorResult], None] | None = None,
                 before_backbone: Callable[[], bool] | None = None) -> ClipOutcome | None:
         """One clip (undistorted, with the IMU covering it and, with ``online``, the IMU history back to
-        ``online_max_bridge``). ``on_init`` receives the fast init-mode result of an ok clip before ``cond``/``ttr``
-        refine it (the node publishes it at once). ``before_backbone`` is called once the clip passed the data
-        checks; when it returns False the clip is abandoned (None: nothing changed). Bad data never raises: it is the
-        outcome's ``init`` status."""
+        ``online_max_bridge``). ``on_init(clip, result)`` receives the clip as processed and its fast init-mode
+        result when it is ok, before ``cond``/``ttr`` refine it (the node publishes it at once). ``before_backbone``
+        is called once the clip passed the data checks; when it returns False the clip is abandoned (None: nothing
+        changed). Bad data never raises: it is the outcome's ``init`` status."""
+        clip = self._compose(clip)
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
         if reason is not None:
             init = InitResult(InitStatus.REJECTED, reason)
             decision = OnlineDecision(rejected={"clip": reason}, own=init) if self.window is not None else None
-            return ClipOutcome(init, decision=decision, state=self._state(), segment=self._segment())
+            return ClipOutcome(clip, init, decision=decision, state=self._state(), segment=self._segment())
         if before_backbone is not None and not before_backbone():
             return None
         fast: list[AnchorResult] = []
@@ -115,14 +120,26 @@ class StreamEstimator:
             if self.options.mode != "init" and result.init.ok:
                 fast.append(result)
                 if on_init is not None:
-                    on_init(result)
+                    on_init(clip, result)
 
         result = anchor(clip, self.backbone, mode=self.options.mode, options=self.anchor_options,
                         init_options=self.init_options, init=self._initialiser(clip), on_init=take_fast)
         window = self.window
         chained = window.update(clip, result) if window is not None else None
-        return ClipOutcome(result.init, result, fast[0] if fast else None,
+        return ClipOutcome(clip, result.init, result, fast[0] if fast else None,
                            window.last if window is not None else None, chained, self._state(), self._segment())
+
+    def _compose(self, clip: Clip) -> Clip:
+        """``clip``, or with the window's shared frames in place of its first ones when it does not start with them
+        (the clips in between were dropped) and they end at most ``shared_max_gap`` before its own frames: so that
+        its scale is linked to the window's through frames both clips predicted."""
+        shared = self.window.shared if self.window is not None else None
+        if shared is None or shared.starts(clip) or clip.n <= len(shared):
+            return clip
+        gap = float(clip.stamps[len(shared)] - shared.stamps[-1])
+        if not 0.0 < gap <= self.online_options.shared_max_gap:
+            return clip
+        return shared.into(clip) or clip
 
     def _initialiser(self, clip: Clip) -> Callable | None:
         """The initialisation ``anchor`` runs on the base geometry (None: its own per-clip GT-free one)."""

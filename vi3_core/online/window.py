@@ -23,6 +23,7 @@ from vi3_core.fit import (
     ImuNoiseModel,
     MetricFit,
     PriorLayout,
+    ScaleLink,
     fit_stamps,
     marginalise,
 )
@@ -35,8 +36,9 @@ BA_FLOOR = 0.01  # m/s^2: no window's accelerometer-bias estimate is carried acr
 @dataclass
 class Member:
     """A clip in the window: stamps [n] s; T_wc [n,4,4] backbone camera poses in its first camera frame (model units);
-    sigma_v: its visual noise (model units, per axis, from its own fit); and its latest estimates in its own first body
-    frame: lam (1 / scale; NaN: none yet), v [3] m/s, g [3] m/s^2."""
+    sigma_v: its visual noise (model units, per axis, from its own fit); its latest estimates in its own first body
+    frame: lam (1 / scale; NaN: none yet), v [3] m/s, g [3] m/s^2; and its scale link to the clip that started at
+    ``link_to`` s (None: unlinked), which the fit uses when that clip is the member before it."""
 
     stamps: np.ndarray
     T_wc: np.ndarray
@@ -44,6 +46,8 @@ class Member:
     lam: float
     v: np.ndarray
     g: np.ndarray
+    link: ScaleLink | None = None
+    link_to: float = float("nan")
 
 
 @dataclass
@@ -54,6 +58,10 @@ class Solution:
     fit: MetricFit
     result: FitResult
     priors: tuple[GaussianPrior, ...]
+
+    def linked(self, k: int) -> bool:
+        """Whether member k's scale link to member k-1 is in the fit."""
+        return any(j == k for j, _, _ in self.fit.scale_links)
 
     def frame_state(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(g [3], v [3]) at member k's first frame, in that body frame."""
@@ -86,7 +94,7 @@ class Window:
             cov = (V * np.maximum(w, BA_FLOOR**2)) @ V.T + ba_widen * np.eye(3)
             sqrt_info = np.zeros((3, PriorLayout.n))
             sqrt_info[:, PriorLayout.ba] = np.linalg.cholesky(np.linalg.inv(cov)).T
-            center = PriorLayout.vector(np.zeros(3), mean, np.zeros(3), np.zeros(3))
+            center = PriorLayout.vector(np.zeros(3), mean, np.zeros(3), np.zeros(3), 0.0)
             self.prior = GaussianPrior(center, sqrt_info, np.zeros(3))
 
     def solve(self, new: Member, imu: ImuSamples, bg: np.ndarray, bg_sigma: float, T_BC: np.ndarray) -> Solution:
@@ -96,7 +104,8 @@ class Window:
         clips = [FitClip(m.stamps, m.T_wc, m.sigma_v) for m in members]
         stamps = fit_stamps(clips)
         pre = preintegrate(imu.window(float(stamps[0]), float(stamps[-1])), stamps, bg, jacobians=True)
-        fit = MetricFit(clips, pre, T_BC, noise=self.noise, gravity_norm=self.G, bg_sigma=bg_sigma)
+        links = [m.link if m.link_to == float(prev.stamps[0]) else None for prev, m in zip(members, members[1:])]
+        fit = MetricFit(clips, pre, T_BC, noise=self.noise, gravity_norm=self.G, bg_sigma=bg_sigma, scale_links=links)
         R0 = [pre.R[b.first] for b in fit.blocks]
         lam = np.array([m.lam for m in members])
         state = fit.initial_state(R0[0] @ members[0].g, np.where(np.isfinite(lam) & (lam > 0), lam, np.nan))

@@ -48,6 +48,53 @@ class PoseNoise:
                              "(e.g. 0.003,0.1)") from None
 
 
+@dataclass(frozen=True)
+class DepthNoise:
+    """Errors of a 3DFM's depth maps, relative (multiplicative, as log-depth errors): rel, i.i.d. per pixel; smooth, a
+    low-frequency field per frame (``smooth_field``: a few cycles across the image, unit variance, times smooth) that
+    no average over neighbouring pixels removes."""
+
+    rel: float = 0.0
+    smooth: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not all(np.isfinite(v) and v >= 0 for v in (self.rel, self.smooth)):
+            raise ValueError(f"DepthNoise: every value must be finite and >= 0, got {self}")
+
+    @staticmethod
+    def parse(text: str) -> DepthNoise:
+        """"REL[,SMOOTH]" (the evaluation's ``--gt-depth-noise``) -> DepthNoise; ValueError naming the text."""
+        try:
+            values = [float(x) for x in text.split(",")]
+            if not 1 <= len(values) <= 2:
+                raise ValueError
+            return DepthNoise(*values)
+        except ValueError:
+            raise ValueError(f"depth noise {text!r}: expected REL[,SMOOTH], finite and >= 0 (e.g. 0.05,0.02)") from None
+
+    def apply(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """``depth`` [n,h,w] times exp(rel N(0, 1) per pixel + smooth ``smooth_field`` per frame)."""
+        n, h, w = depth.shape
+        if self.rel == 0 and self.smooth == 0:
+            return depth
+        log_err = self.rel * rng.standard_normal(depth.shape) if self.rel > 0 else np.zeros(depth.shape)
+        if self.smooth > 0:
+            log_err += self.smooth * np.stack([smooth_field(h, w, rng) for _ in range(n)])
+        return (depth * np.exp(log_err)).astype(depth.dtype)
+
+
+def smooth_field(h: int, w: int, rng: np.random.Generator, *, modes: int = 8) -> np.ndarray:
+    """[h,w] unit-variance random field of ``modes`` plane waves of 1 to 3 cycles across the image in random
+    directions and phases: an error that varies slowly over the image."""
+    angle = rng.uniform(0.0, 2.0 * np.pi, modes)
+    cycles = rng.uniform(1.0, 3.0, modes)
+    phase = rng.uniform(0.0, 2.0 * np.pi, modes)
+    y, x = np.mgrid[0:h, 0:w]
+    arg = (np.cos(angle)[:, None, None] * x[None] / w + np.sin(angle)[:, None, None] * y[None] / h)
+    waves = np.cos(2.0 * np.pi * cycles[:, None, None] * arg + phase[:, None, None])
+    return waves.sum(0) * np.sqrt(2.0 / modes)
+
+
 def noisy_poses(T_wc: np.ndarray, *, scale: float, noise: PoseNoise, rng: np.random.Generator) -> np.ndarray:
     """T_wc [n,4,4] metric camera poses in C1 -> up-to-scale poses with ``noise`` (model units = metres / scale),
     re-anchored so that the first is the identity."""

@@ -52,6 +52,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --backbone gt: per-frame position (m) and rotation (deg) noise of the ground-truth "
                         "poses, and an optional random-walk position drift (m at the clip's last frame); default 0,0. "
                         "Works on recordings of IMU and ground truth without images")
+    p.add_argument("--gt-depth-noise", default=None, metavar="REL[,SMOOTH]",
+                   help="with --backbone gt on a recording with depth (generated or --from-euroc): each clip's depth "
+                        "at its model scale times exp(REL N(0,1) per pixel + SMOOTH x a low-frequency field per frame, "
+                        "a few cycles across the image); default 0 (exact depth)")
     p.add_argument("--gt-seed", type=int, default=0, metavar="N",
                    help="with --backbone gt: seed of the noise (each clip's noise is drawn from N and its first "
                         "stamp, so a run is repeatable); default 0")
@@ -255,11 +259,13 @@ def _backbone(args: argparse.Namespace):
 
     if args.backbone == "gt":
         from vi3_core.backbones.ground_truth import GroundTruthPoses
-        from vi3_core.sim.visual import PoseNoise
+        from vi3_core.sim.visual import DepthNoise, PoseNoise
 
-        return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"), seed=args.gt_seed)
-    if args.gt_noise is not None or args.gt_seed:
-        raise ValueError("--gt-noise and --gt-seed need --backbone gt (the ground-truth pose instrument)")
+        return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"),
+                                 depth_noise=DepthNoise.parse(args.gt_depth_noise or "0"), seed=args.gt_seed)
+    if args.gt_noise is not None or args.gt_depth_noise is not None or args.gt_seed:
+        raise ValueError("--gt-noise, --gt-depth-noise and --gt-seed need --backbone gt (the ground-truth pose "
+                         "instrument)")
     backbone_class(args.backbone)  # a known name
     return functools.partial(make_backbone, args.backbone, device=args.device, checkpoint=args.checkpoint)
 
@@ -287,7 +293,7 @@ def _prepare(args: argparse.Namespace) -> tuple:
     for path in args.input:
         try:
             seq = _open(args, path)
-            sampled = runner.check_sequence(seq, options=options)
+            sampled = runner.check_sequence(seq, options=options, chained=_chained(args))
         except (Vi3Error, ValueError, OSError) as exc:
             problems.append(f"input {path}: {exc}")
             continue
