@@ -11,10 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from euroc_cuts import quarter_cam0
 
 from vi3_core.dataset.asl import read_asl, read_groundtruth, read_imu
 from vi3_core.dataset.generate import MAX_GT_GAP_NS
-from vi3_core.dataset.sequence import sample_clips
+from vi3_core.eval.runner import EvalOptions, clip_indices
 from vi3_ros import cli
 
 pytestmark = pytest.mark.slow  # every test here renders and evaluates a cut of a real recording
@@ -22,8 +23,6 @@ pytestmark = pytest.mark.slow  # every test here renders and evaluates a cut of 
 MS = 1_000_000  # ns
 START_NS = 10_000 * MS  # the cut starts 10 s into V1_02's GT: the drone is flying
 IMU_NS = 2_500 * MS  # IMU length of a cut
-QUARTER = {"resolution: [752, 480]": "resolution: [188, 120]",  # cam0 at 1/4 resolution: pixel centres scale
-           "intrinsics: [458.654, 457.296, 367.215, 248.375]": "intrinsics: [114.6635, 114.324, 91.42875, 61.71875]"}
 
 
 def _cut(src: Path, dst: Path, *, gt_before_ns: int, gt_after_ns: int, gt_shift_ns: int = 0, gt_hz: float | None = None,
@@ -38,11 +37,7 @@ def _cut(src: Path, dst: Path, *, gt_before_ns: int, gt_after_ns: int, gt_shift_
         (dst / rel).mkdir()
         (dst / rel / "sensor.yaml").write_bytes((src / rel / "sensor.yaml").read_bytes())
     (dst / "body.yaml").write_bytes((src / "body.yaml").read_bytes())
-    yaml = (dst / "cam0" / "sensor.yaml").read_text()
-    for old, new in QUARTER.items():
-        assert old in yaml
-        yaml = yaml.replace(old, new)
-    (dst / "cam0" / "sensor.yaml").write_text(yaml)
+    (dst / "cam0" / "sensor.yaml").write_text(quarter_cam0((dst / "cam0" / "sensor.yaml").read_text()))
     imu_lines = (src / "imu0" / "data.csv").read_text().splitlines()
     gt_lines = (src / "state_groundtruth_estimate0" / "data.csv").read_text().splitlines()
     imu_ns = np.array([int(r.split(",")[0]) for r in imu_lines[1:]])
@@ -84,7 +79,7 @@ def _assert_eval_scores_every_clip(asl: Path, n_frames: int, capsys) -> None:
     stdout, stderr = capsys.readouterr()
     report = json.loads(stdout)
     assert code == 0 and "partial" not in report, stderr
-    assert report["n_clips"] == len(sample_clips(n_frames, mode="sliding")) >= 2
+    assert report["n_clips"] == len(clip_indices(n_frames, options=EvalOptions(clips="sliding"), chained=True)) >= 2
 
 
 LAYOUTS = {  # name: _cut's options

@@ -123,6 +123,12 @@ class Backbone(abc.ABC):
         """The torch modules holding all parameters (put in eval mode; frozen except TTR groups)."""
         return []
 
+    def bind(self, clip) -> None:
+        """Called with each ``vi3_core.types.Clip`` just before it is predicted (``StreamEstimator``): nothing for a
+        model, which sees only its images; the evaluation's ground-truth instrument predicts from the clip's ground
+        truth."""
+        return
+
     def diagnostics(self) -> dict:
         """What the backbone reports about the last clip it preprocessed, as JSON-serialisable name -> value: keys
         ending in ``_s`` are stage timings in seconds; ``status`` and ``reason`` give the clip's outcome where the

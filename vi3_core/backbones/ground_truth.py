@@ -37,7 +37,7 @@ class GroundTruthPoses(Backbone):
         self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
     def bind(self, clip: Clip) -> None:
-        """The clip whose ground truth the next prediction uses."""
+        """The clip whose ground truth the next prediction uses (the stream binds each clip as it processes it)."""
         if clip.gt is None:
             raise DataError(f"the gt instrument needs ground truth for the clip at {clip.stamps[0]:.6f} s")
         self._clip = clip

@@ -93,8 +93,6 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
     if clip.gt is None:
         raise DataError(f"evaluate_clip: the clip at t = {clip.stamps[0]:.6f}..{clip.stamps[-1]:.6f} s has no ground "
                         "truth (the GT track does not cover it); evaluation needs GT poses and velocities")
-    if hasattr(stream.backbone, "bind"):  # the ground-truth pose instrument predicts from the clip's ground truth
-        stream.backbone.bind(clip)
     outcome = stream.process(clip)
     if outcome.clip is not clip:  # the stream put shared frames in place of its first ones
         clip, indices = outcome.clip, None

@@ -4,6 +4,11 @@ that the two agree.
 Assumes the bias is constant over the clip and the backbone's rotations are unbiased. A backbone whose rotations
 are wrong by more than the gyro drift leaves residuals of that size after the fit (``rotation_check``): a clip
 whose relative rotations disagree with the bias-corrected gyro by degrees is a backbone failure.
+
+Both estimates assume small rotations between the frames they compare (Eq. bg splits an interval's rotation evenly
+over its samples; the refinement's Jacobian is -dT I). A clip whose first frames stand in for dropped clips (shared
+frames, ``vi3_core.online``) has a long interval after them, over which the body may turn by a radian: the estimates
+then use only the pairs that straddle no such gap (``steady_pairs``), and the check still covers every pair.
 """
 
 from __future__ import annotations
@@ -24,8 +29,24 @@ def body_rotations(R_wc: np.ndarray, T_BC: np.ndarray) -> np.ndarray:
     return R_BC @ R_wc @ R_BC.T
 
 
+GAP_FACTOR = 2.0  # a frame interval this many times the median one is a gap (frames that stand in for dropped clips)
+
+
+def gaps(stamps: np.ndarray) -> np.ndarray:
+    """[n-1] bool: the frame intervals of ``stamps`` [n] s longer than GAP_FACTOR times their median."""
+    dT = np.diff(stamps)
+    return dT > GAP_FACTOR * np.median(dT)
+
+
+def steady_pairs(stamps: np.ndarray) -> np.ndarray:
+    """[P] bool over every frame pair i < j (``_pair_indices`` order): the pair straddles no gap (``gaps``)."""
+    i, j = _pair_indices(len(stamps))
+    before = np.concatenate([[0], np.cumsum(gaps(stamps))])  # gaps before each frame
+    return before[j] == before[i]
+
+
 def gyro_bias_eq(R_vis: np.ndarray, gyro_mean: np.ndarray, dT: np.ndarray, dt_imu: float) -> np.ndarray:
-    """Eq. bg on each consecutive pair, averaged over the n-1 pairs.
+    """Eq. bg on each consecutive pair, averaged over the n-1 pairs (over those that are no gap, when some are).
 
     R_vis: [n,3,3] body rotations from the backbone; gyro_mean: [n-1,3] average raw gyro per interval (rad/s);
     dT: [n-1] frame intervals (s); dt_imu: IMU period (s), so m = dT / dt_imu samples per interval.
@@ -34,7 +55,8 @@ def gyro_bias_eq(R_vis: np.ndarray, gyro_mean: np.ndarray, dT: np.ndarray, dt_im
     m = dT / dt_imu
     per_sample = so3.exp(so3.log(dR) / m[:, None])
     b = -so3.log(np.swapaxes(so3.exp(gyro_mean * dt_imu), 1, 2) @ per_sample) / dt_imu  # Eq. bg
-    return b.mean(axis=0)
+    steady = dT <= GAP_FACTOR * np.median(dT)
+    return b[steady].mean(axis=0) if steady.any() else b.mean(axis=0)
 
 
 def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg: np.ndarray, iters: int, *,
@@ -47,7 +69,8 @@ def refine_gyro_bias(imu: ImuSamples, stamps: np.ndarray, R_vis: np.ndarray, bg:
     """
     grid = grid or merged_grid(imu, stamps)
     pairs = _FramePairs.of(stamps, R_vis)
-    weight = pairs.dT[:, None] / (pairs.dT**2).sum()
+    dT = np.where(steady_pairs(stamps), pairs.dT, 0.0)  # pairs across a gap carry no weight
+    weight = dT[:, None] / (dT**2).sum()
     for _ in range(iters):
         r = pairs.residual(frame_rotations(grid, bg))
         bg = bg - (weight * r).sum(0)

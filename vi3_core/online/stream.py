@@ -114,6 +114,7 @@ class StreamEstimator:
             return ClipOutcome(clip, init, decision=decision, state=self._state(), segment=self._segment())
         if before_backbone is not None and not before_backbone():
             return None
+        self.backbone.bind(clip)
         fast: list[AnchorResult] = []
 
         def take_fast(result: AnchorResult) -> None:
