@@ -152,6 +152,9 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
               "t_last": f"{clip.stamps[-1]:.9f}", "input_drops": drops, "latency_ms": f"{latency_s * 1e3:.1f}"}
     if decision is not None and trajectory is not None:
         values["online"] = decision.describe()
+        if decision.joined:  # how the window earned the clip's scale, and the scale link to the clip before it
+            values["scale_earned"] = decision.earned
+            values["scale_link"] = decision.link.describe() if decision.link is not None else decision.link_note
         values["odom_segment"] = len(trajectory.resets)  # 0: the first; each reset starts one (its first frame)
         if trajectory.resets:
             values["odom_segment_start"] = f"{trajectory.resets[-1]:.9f}"

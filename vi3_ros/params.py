@@ -137,8 +137,8 @@ PARAMS: tuple[Param, ...] = (
           "their scales; they count in clip_length (hop 0 then starts a clip every (clip_length - shared_frames) * "
           "stride frames); 0: no links", range=(0, 63)),
     Param("shared_max_gap", OnlineOptions, "s; the shared frames replace the first frames of a clip that does not "
-          "start with them (clips a busy worker dropped) only when they end at most this long before it",
-          range=(0.01, 60.0)),
+          "start with them (clips a busy worker dropped) when they end at most this long before it, linking it across "
+          "the drop; 0: never (the classical backbone cannot register views seconds apart)", range=(0.0, 60.0)),
     Param("link_sigma_floor", OnlineOptions, "relative 1-sigma added to every scale link for what the spread of its "
           "depth blocks cannot show", range=(0.0, 1.0)),
     # clip buffer

@@ -29,8 +29,10 @@ class OnlineOptions:
         the clip's length (the node's clips then start every (clip_length - shared_frames) * stride frames); 0: no
         links, every clip's scale tied to the others through the IMU only;
     shared_max_gap: s; the shared frames replace the first ones of a clip that does not start with them (clips a busy
-        worker dropped in between) only when they end at most this long before the clip's own frames, so the backbone
-        still sees overlapping views; otherwise the clip is not linked;
+        worker dropped in between) when they end at most this long before the clip's own frames, so the clip is
+        linked across the drop; 0 (default): never, such a clip is not linked. For a backbone that registers views
+        seconds apart: the embedded ``classical`` one does not (its tracks break, the clip fails its rotation check),
+        and with it this costs claims and drift;
     link_sigma_floor: relative 1-sigma added to every link for what the spread of its depth blocks cannot show.
     """
 
@@ -42,14 +44,14 @@ class OnlineOptions:
     online_max_rejects: int = 3
     online_bg_window: float = 20.0
     shared_frames: int = 1
-    shared_max_gap: float = 1.0
+    shared_max_gap: float = 0.0
     link_sigma_floor: float = 0.005
 
     def __post_init__(self) -> None:
         positive = ("online_window", "online_max_clips", "online_max_bridge", "online_max_bridge_sigma",
-                    "online_consistency_p", "online_max_rejects", "online_bg_window", "shared_max_gap")
+                    "online_consistency_p", "online_max_rejects", "online_bg_window")
         bad = [name for name in positive if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0)]
-        bad += [name for name in ("shared_frames", "link_sigma_floor")
+        bad += [name for name in ("shared_frames", "shared_max_gap", "link_sigma_floor")
                 if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0)]
         if bad or not self.online_consistency_p < 1.0 or self.online_max_clips < 2:
             raise ValueError(f"OnlineOptions: {', '.join(bad) or 'online_consistency_p < 1, online_max_clips >= 2'} "

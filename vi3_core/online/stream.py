@@ -138,7 +138,7 @@ class StreamEstimator:
         if shared is None or shared.starts(clip) or clip.n <= len(shared):
             return clip
         gap = float(clip.stamps[len(shared)] - shared.stamps[-1])
-        if not 0.0 < gap <= self.online_options.shared_max_gap:
+        if not 0.0 < gap <= self.online_options.shared_max_gap:  # never with the default 0
             return clip
         return shared.into(clip) or clip
 
