@@ -192,7 +192,8 @@ class ScaleFit:
     g_sigma (rad): the largest 1-sigma of v1 (any axis) and of gravity's direction; sigma_v: the clip's own visual
     noise per axis, model units; dof: the clip's residual degrees of freedom; variance_factor: the fit's a-posteriori
     variance factor (>= 1); converged: Gauss-Newton met its tolerance; window_clips: clips fitted jointly (1: the
-    clip on its own)."""
+    clip on its own); time_offset, time_offset_sigma: s, the camera-IMU time offset left over after the configured one
+    (a frame at t shows the body at t + time_offset) and its 1-sigma."""
 
     lam: float
     scale_rel_sigma: float
@@ -204,6 +205,8 @@ class ScaleFit:
     variance_factor: float
     converged: bool
     window_clips: int = 1
+    time_offset: float = 0.0
+    time_offset_sigma: float = float("nan")
 
     @property
     def sigma_v_m(self) -> float:

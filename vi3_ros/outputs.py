@@ -143,13 +143,16 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
         level = Level.WARN
     reason = result_reason(init, result)
     alpha = result.alpha if result is not None else float("nan")
-    rel = init.fit.scale_rel_sigma if init.fit is not None else float("nan")
+    fit = init.fit
+    rel = fit.scale_rel_sigma if fit is not None else float("nan")
     values = {"clip": index, "result": kind, "init_status": init.status.value, "reason": reason,
               "scale": f"{init.scale:.6g}", "scale_sigma": f"{init.scale_sigma:.3g}", "scale_rel_sigma": f"{rel:.3g}",
               "alpha": f"{alpha:.6g}", "gravity_source": init.gravity_source,
               "consensus_deg": f"{init.consensus_deg:.4g}", "g": _vec(init.g), "v1": _vec(init.v1),
               "bg": _vec(init.bg), "ba": _vec(init.ba), "t_first": f"{clip.stamps[0]:.9f}",
               "t_last": f"{clip.stamps[-1]:.9f}", "input_drops": drops, "latency_ms": f"{latency_s * 1e3:.1f}"}
+    if fit is not None:  # the time offset the fit found beyond the configured one
+        values["time_offset_residual_ms"] = f"{1e3 * fit.time_offset:.2f} +- {1e3 * fit.time_offset_sigma:.2f}"
     if decision is not None and trajectory is not None:
         values["online"] = decision.describe()
         if decision.joined:  # how the window earned the clip's scale, and the scale link to the clip before it

@@ -191,6 +191,9 @@ PARAMS: tuple[Param, ...] = (
             range=(0.0, 10.0)),
     Param("gyro_bias_walk", InitOptions, "rad/s/sqrt(s); gyro bias random walk",
             range=(0.0, 10.0)),
+    Param("time_offset_sigma", InitOptions, "s; how far the camera-IMU time offset (time_offset, Kalibr "
+          "timeshift_cam_imu) may be off: the error model estimates the rest and widens every scale's sigma by what it "
+          "cannot rule out", range=(1e-6, 1.0)),
     Param("scale_rel_floor", InitOptions, "relative scale error the error model does not see "
             "(added to every sigma)", range=(0.0, 1.0)),
     Param("min_accel_rms", InitOptions, "m/s^2; below it scale is unobservable and the clip is "

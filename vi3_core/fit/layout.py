@@ -5,11 +5,12 @@ marginalisation and the online window's restart address them by name, never by a
 new entry of ``SHARED`` or ``PER_CLIP`` (or of ``PRIOR``), and every user follows.
 
 Parameter change dx (``StateLayout``), in this order:
-    shared:   g (2: gravity's tangent plane, its norm is fixed), ba (3, m/s^2, IMU frame), bg (3, rad/s, IMU frame)
+    shared:   g (2: gravity's tangent plane, its norm is fixed), ba (3, m/s^2, IMU frame), bg (3, rad/s, IMU frame),
+              td (1, s: the camera-IMU time offset left over after the configured one)
     per clip: lam (1: 1 / scale), v (3: first-frame velocity in B0, m/s), c (3: offset of the clip's first frame,
               model units)
 Prior vector z (``PriorLayout``): g (3, m/s^2, B0), ba (3), bg (3), v (3, m/s, B0), lam (1): the velocity and 1 / scale
-of the clip the prior is written at (its scale is what a link to the clips before carries forward).
+of the clip the prior is written at (its scale is what a link to the clips before carries forward), td (1, s).
 """
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SHARED: tuple[tuple[str, int], ...] = (("g", 2), ("ba", 3), ("bg", 3))
+SHARED: tuple[tuple[str, int], ...] = (("g", 2), ("ba", 3), ("bg", 3), ("td", 1))
 PER_CLIP: tuple[tuple[str, int], ...] = (("lam", 1), ("v", 3), ("c", 3))
-PRIOR: tuple[tuple[str, int], ...] = (("g", 3), ("ba", 3), ("bg", 3), ("v", 3), ("lam", 1))
+PRIOR: tuple[tuple[str, int], ...] = (("g", 3), ("ba", 3), ("bg", 3), ("v", 3), ("lam", 1), ("td", 1))
 
 
 def _offsets(blocks: tuple[tuple[str, int], ...]) -> tuple[dict[str, slice], int]:
@@ -68,6 +69,10 @@ class StateLayout:
     def bg(self) -> slice:
         return _SHARED["bg"]
 
+    @property
+    def td(self) -> int:
+        return _SHARED["td"].start
+
     @staticmethod
     def in_clip(name: str) -> slice:
         """Where ``name`` ("lam", "v", "c") sits inside a clip's block."""
@@ -108,7 +113,7 @@ class StateLayout:
 
     def prior_columns(self, k: int) -> np.ndarray:
         """The columns a prior written at clip k speaks about, in ``PriorLayout`` order (g's tangent for its 3)."""
-        return np.r_[self.g, self.ba, self.bg, self.v(k), self.lam(k)]
+        return np.r_[self.g, self.ba, self.bg, self.v(k), self.lam(k), self.td]
 
     def prior_jacobian(self, k: int, GB: np.ndarray) -> np.ndarray:
         """[N_PRIOR, n]: d z / d dx for the prior vector z at clip k; GB [3,2] = |g| times g's tangent basis."""
@@ -118,25 +123,27 @@ class StateLayout:
         Jz[PriorLayout.bg, self.bg] = np.eye(3)
         Jz[PriorLayout.v, self.v(k)] = np.eye(3)
         Jz[PriorLayout.lam, self.lam(k)] = 1.0
+        Jz[PriorLayout.td, self.td] = 1.0
         return Jz
 
 
 class PriorLayout:
-    """Slices of the prior vector z (``PRIOR``): ``g``, ``ba``, ``bg``, ``v``, ``lam``; ``n`` entries."""
+    """Slices of the prior vector z (``PRIOR``): ``g``, ``ba``, ``bg``, ``v``, ``lam``, ``td``; ``n`` entries."""
 
     g = _PRIOR["g"]
     ba = _PRIOR["ba"]
     bg = _PRIOR["bg"]
     v = _PRIOR["v"]
     lam = _PRIOR["lam"]
+    td = _PRIOR["td"]
     n = N_PRIOR
 
     @staticmethod
-    def vector(g: np.ndarray, ba: np.ndarray, bg: np.ndarray, v: np.ndarray, lam: float) -> np.ndarray:
+    def vector(g: np.ndarray, ba: np.ndarray, bg: np.ndarray, v: np.ndarray, lam: float, td: float) -> np.ndarray:
         """z [n] from its parts."""
         z = np.empty(N_PRIOR)
         Z = PriorLayout
-        z[Z.g], z[Z.ba], z[Z.bg], z[Z.v], z[Z.lam] = g, ba, bg, v, lam
+        z[Z.g], z[Z.ba], z[Z.bg], z[Z.v], z[Z.lam], z[Z.td] = g, ba, bg, v, lam, td
         return z
 
 

@@ -49,7 +49,8 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     # inflated); the biases walk while the prior is carried to clip ``drop``'s first frame.
     offset = np.linalg.lstsq(sqrt_H.T, b_m, rcond=None)[0]
     vf = math.sqrt(result.variance_factor)
-    prior = GaussianPrior(PriorLayout.vector(s.g, s.ba, s.bg, s.v[drop], s.lam[drop]), sqrt_H @ P / vf, offset / vf)
+    prior = GaussianPrior(PriorLayout.vector(s.g, s.ba, s.bg, s.v[drop], s.lam[drop], s.td), sqrt_H @ P / vf,
+                          offset / vf)
     prior = prior.widened(fit.noise.accel_bias_walk**2 * dt, fit.noise.gyro_bias_walk**2 * dt)
     phi = fit.pre.J.phi_bg[f]
     return prior.moved(so3.exp(phi @ (s.bg - fit.bg0)) @ fit.pre.R[f], phi)

@@ -72,7 +72,8 @@ class ScaleLink:
 @dataclass
 class FitState:
     """g [3] m/s^2 and v [K,3] m/s (each clip's first frame) in B0; ba [3] m/s^2 and bg [3] rad/s in the IMU frame;
-    lam [K] = 1 / scale; c [K,3] model units."""
+    lam [K] = 1 / scale; c [K,3] model units; td: s, the camera-IMU time offset left over (a frame at t shows the
+    body at t + td)."""
 
     g: np.ndarray
     ba: np.ndarray
@@ -80,9 +81,11 @@ class FitState:
     lam: np.ndarray
     v: np.ndarray
     c: np.ndarray
+    td: float = 0.0
 
     def copy(self) -> FitState:
-        return FitState(*(np.array(x, dtype=np.float64) for x in (self.g, self.ba, self.bg, self.lam, self.v, self.c)))
+        return FitState(*(np.array(x, dtype=np.float64) for x in (self.g, self.ba, self.bg, self.lam, self.v, self.c)),
+                        float(self.td))
 
 
 @dataclass
@@ -122,7 +125,12 @@ class FitResult:
         covariance through its tangent plane)."""
         s = self.state
         J = self.layout.prior_jacobian(k, np.linalg.norm(s.g) * self.tangent)
-        return PriorLayout.vector(s.g, s.ba, s.bg, s.v[k], s.lam[k]), J @ self.cov @ J.T
+        return PriorLayout.vector(s.g, s.ba, s.bg, s.v[k], s.lam[k], s.td), J @ self.cov @ J.T
+
+    @property
+    def time_offset_sigma(self) -> float:
+        """s: the 1-sigma of the time offset td."""
+        return math.sqrt(max(float(self.cov[self.layout.td, self.layout.td]), 0.0))
 
     def state_sigma(self, k: int) -> tuple[float, float]:
         """(rad, m/s): the largest 1-sigma of gravity's direction and of clip k's first-frame velocity (any axis)."""
@@ -176,13 +184,15 @@ class MetricFit:
             self.blocks.append(_Block(
                 first=f, row=row, dtau=dtau, half_dtau2=0.5 * dtau**2, R_f=R_f,
                 a=np.asarray(clip.T_wc, np.float64)[:, :3, 3] @ T_BC[:3, :3].T, lever=lever_arm_terms(R_rel, T_BC),
-                alpha=pre.alpha[ii] - pre.alpha[f] - pre.beta[f] * dtau[:, None], J_ba=J_ba,
+                alpha=pre.alpha[ii] - pre.alpha[f] - pre.beta[f] * dtau[:, None], dbeta=pre.beta[ii] - pre.beta[f],
+                J_ba=J_ba,
                 imu_var=np.maximum(D, 0.0), imu_modes=U.T, dtau_RfT=dtau[:, None, None] * R_f.T[None],
                 RfT_J_ba=R_f.T @ J_ba, RfT_J_bg=R_f.T @ J_bg, RfT_hat_phi=(R_f.T @ _HAT_E @ J.phi_bg[f]).reshape(3, 9)))
             row += 3 * len(dtau)
-        self._bias_rows = np.zeros((6, L.n))
+        self._bias_rows = np.zeros((7, L.n))
         self._bias_rows[0:3, L.ba] = np.eye(3) / noise.accel_bias_sigma
         self._bias_rows[3:6, L.bg] = np.eye(3) / self.bg_sigma
+        self._bias_rows[6, L.td] = 1.0 / noise.time_offset_sigma
         self.link_scale = 1.0  # the ties' sigma relative to the noise model (variance component, see ``solve``)
         f = np.array([b.first for b in self.blocks])
         f0, f1 = f[:-1], f[1:]
@@ -206,7 +216,7 @@ class MetricFit:
         GB = G * B
         dbg = s.bg - self.bg0
         lk = self.links
-        m = lk.row + 3 * (K - 1) + len(self.scale_links) + 6 + sum(prior.sqrt_info.shape[0] for prior in priors)
+        m = lk.row + 3 * (K - 1) + len(self.scale_links) + 7 + sum(prior.sqrt_info.shape[0] for prior in priors)
         y, A = np.empty(m), np.zeros((m, L.n))
         rows = {}
         own = StateLayout(1)  # a clip's Jacobian block: the shared unknowns, then its own
@@ -215,13 +225,16 @@ class MetricFit:
             d = s.v[k] * blk.dtau[:, None] + blk.half_dtau2[:, None] * s.g + blk.alpha + blk.J_ba @ s.ba  # B0, m
             # d body / d bg in the clip's first frame: the clip's frame turns with bg too (R_f^T hat(d_i) phi_f)
             RfT_J_bg = blk.RfT_J_bg + (d @ blk.RfT_hat_phi).reshape(n, 3, 3)
-            body = d @ blk.R_f + RfT_J_bg @ dbg - blk.lever
+            # the body velocity at the frames (clip's first body frame): a time offset td shows the body td later
+            vel = (s.v[k] + blk.dtau[:, None] * s.g + blk.dbeta) @ blk.R_f
+            body = d @ blk.R_f + RfT_J_bg @ dbg - blk.lever + s.td * vel
             J = np.empty((n, 3, own.n))
-            J[:, :, own.g] = (lam * blk.half_dtau2)[:, None, None] * (blk.R_f.T @ GB)
+            J[:, :, own.g] = ((lam * (blk.half_dtau2 + s.td * blk.dtau))[:, None, None] * (blk.R_f.T @ GB))
             J[:, :, own.ba] = lam * blk.RfT_J_ba
             J[:, :, own.bg] = lam * RfT_J_bg
+            J[:, :, own.td] = lam * vel
             J[:, :, own.lam(0)] = body
-            J[:, :, own.v(0)] = lam * blk.dtau_RfT
+            J[:, :, own.v(0)] = lam * (blk.dtau_RfT + s.td * blk.R_f.T[None])
             J[:, :, own.c(0)] = _EYE3
             r0, r1 = blk.row, blk.row + 3 * n
             y[r0:r1] = (blk.imu_modes @ (lam * body + s.c[k] - blk.a)).reshape(-1)
@@ -246,13 +259,14 @@ class MetricFit:
             A[r0, L.lam(k)], A[r0, L.lam(k - 1)] = 1.0 / (lam1 * sigma), -1.0 / (lam0 * sigma)
             rows[f"scale {k}"] = range(r0, r0 + 1)
             r0 += 1
-        # ba ~ N(0, accel_bias_sigma^2), bg ~ N(bg0, bg_sigma^2)
+        # ba ~ N(0, accel_bias_sigma^2), bg ~ N(bg0, bg_sigma^2), td ~ N(0, time_offset_sigma^2)
         y[r0:r0 + 3], y[r0 + 3:r0 + 6] = s.ba / self.noise.accel_bias_sigma, dbg / self.bg_sigma
-        A[r0:r0 + 6] = self._bias_rows
-        rows["bias"] = range(r0, r0 + 6)
-        r0 += 6
+        y[r0 + 6] = s.td / self.noise.time_offset_sigma
+        A[r0:r0 + 7] = self._bias_rows
+        rows["bias"] = range(r0, r0 + 7)
+        r0 += 7
         if priors:
-            z = PriorLayout.vector(s.g, s.ba, s.bg, s.v[0], s.lam[0])
+            z = PriorLayout.vector(s.g, s.ba, s.bg, s.v[0], s.lam[0], s.td)
             Jz = L.prior_jacobian(0, GB)
             for i, prior in enumerate(priors):
                 r1 = r0 + prior.sqrt_info.shape[0]
@@ -280,7 +294,7 @@ class MetricFit:
         L = self.layout
         g = s.g - self.G * B @ dx[L.g]
         return FitState(self.G * g / math.hypot(*g), s.ba - dx[L.ba], s.bg - dx[L.bg], s.lam - dx[L.lams],
-                        s.v - dx[L.vs], s.c - dx[L.cs])
+                        s.v - dx[L.vs], s.c - dx[L.cs], s.td - float(dx[L.td]))
 
     # ---- solution -----------------------------------------------------------------------------------------------
 
@@ -418,6 +432,7 @@ class MetricFit:
 class _Block:
     """Precomputed terms of one clip (see ``MetricFit._model``): first stamp index; row: its first row in the model;
     dtau, half_dtau2 = dtau^2 / 2 [n]; R_f [3,3]; a [n,3]; lever [n,3]; alpha [n,3] (bias-free displacement part, B0);
+    dbeta [n,3] (bias-free velocity change from the first frame, B0);
     J_ba [n,3,3]; its IMU position covariance (``ImuNoiseModel.position_cov``) as variances imu_var [n] (m^2) along
     the rows of imu_modes [n,n] (orthonormal); the constant Jacobian factors dtau_RfT, RfT_J_ba, RfT_J_bg [n,3,3]
     (R_f^T times the displacement's bias Jacobians); and RfT_hat_phi [3,9], R_f^T hat(e_a) phi_f for the axes a
@@ -431,6 +446,7 @@ class _Block:
     a: np.ndarray
     lever: np.ndarray
     alpha: np.ndarray
+    dbeta: np.ndarray
     J_ba: np.ndarray
     imu_var: np.ndarray
     imu_modes: np.ndarray

@@ -23,7 +23,9 @@ class ImuNoiseModel:
     reach 0.1-0.2). gyro_bias_sigma: rad/s, floor of the gyro-bias prior's 1-sigma (a larger spread of its estimate
     is used when given). rel_floor: relative scale error the model does not see (the real IMU with exact poses: ~1 %).
     accel_bias_walk (m/s^2/sqrt(s)), gyro_bias_walk (rad/s/sqrt(s)): the biases' random walks (EuRoC's datasheet
-    values): what a prior on the biases loses per second (``GaussianPrior.widened``).
+    values): what a prior on the biases loses per second (``GaussianPrior.widened``). time_offset_sigma: s, prior
+    1-sigma of the camera-IMU time offset left over after the configured one (software stamps, USB cameras: a few
+    ms).
     """
 
     accel_noise_density: float = 2.0e-2
@@ -34,10 +36,11 @@ class ImuNoiseModel:
     rel_floor: float = 0.01
     accel_bias_walk: float = 3.0e-3
     gyro_bias_walk: float = 1.9393e-05
+    time_offset_sigma: float = 0.005
 
     def __post_init__(self) -> None:
         bad = [k for k, v in vars(self).items() if not (math.isfinite(v) and v >= 0.0)]
-        bad += [k for k in ("accel_bias_sigma", "gyro_bias_sigma") if not getattr(self, k) > 0.0]
+        bad += [k for k in ("accel_bias_sigma", "gyro_bias_sigma", "time_offset_sigma") if not getattr(self, k) > 0.0]
         if bad:
             raise ValueError(f"ImuNoiseModel: {', '.join(sorted(set(bad)))} must be finite and >= 0 (bias sigmas > 0)")
 

@@ -197,7 +197,8 @@ def _error_model_scale(inertial: _Inertial, geometry: Geometry, T_BC: np.ndarray
     g_sigma, v1_sigma = res.state_sigma(0)
     own = ScaleFit(lam=float(st.lam[0]), scale_rel_sigma=float(res.scale_rel_sigma[0]), v1=st.v[0],
                    v1_sigma=v1_sigma, g_sigma=g_sigma, sigma_v=float(res.sigma_v[0]), dof=float(res.dof[0]),
-                   variance_factor=res.variance_factor, converged=res.converged)
+                   variance_factor=res.variance_factor, converged=res.converged, time_offset=st.td,
+                   time_offset_sigma=res.time_offset_sigma)
     result = inertial.result()
     result.g, result.bg, result.ba, result.fit = st.g, st.bg, st.ba, own
     s, rel = float(res.scale[0]), own.scale_rel_sigma

@@ -35,8 +35,9 @@ class InitOptions:
         fp_accelerate: Steffensen acceleration of that iteration (same fixed point; beyond the paper).
     Error model and observability (beyond the paper: the paper's Sec. Limitations, made explicit as a status)
         accel_noise_density, gyro_noise_density, gyro_scale_error, accel_bias_sigma, gyro_bias_sigma,
-            scale_rel_floor, accel_bias_walk, gyro_bias_walk: the IMU error model of the "eiv" fit (``ImuNoiseModel``;
-            scale_rel_floor is its ``rel_floor``).
+            scale_rel_floor, accel_bias_walk, gyro_bias_walk, time_offset_sigma: the IMU error model of the "eiv" fit
+            (``ImuNoiseModel``; scale_rel_floor is its ``rel_floor``; time_offset_sigma, s, how far the configured
+            camera-IMU time offset may be off: the fit estimates the rest and widens the scale's sigma by it).
         max_scale_sigma: a scale whose relative 1-sigma exceeds this is not claimed (status unobservable). At 4 %
             a claimed scale 10 % off is a 2.5-sigma event (about 1 % of the claims at the limit, fewer below it).
         max_rotation_error: a clip whose backbone relative rotations disagree with the bias-corrected gyro by more
@@ -67,6 +68,7 @@ class InitOptions:
     scale_rel_floor: float = ImuNoiseModel.rel_floor
     accel_bias_walk: float = ImuNoiseModel.accel_bias_walk
     gyro_bias_walk: float = ImuNoiseModel.gyro_bias_walk
+    time_offset_sigma: float = ImuNoiseModel.time_offset_sigma
     max_scale_sigma: float = 0.04
     max_rotation_error: float = 2.0
     min_accel_rms: float = 0.15
@@ -93,4 +95,5 @@ class InitOptions:
         return ImuNoiseModel(accel_noise_density=self.accel_noise_density, gyro_noise_density=self.gyro_noise_density,
                              gyro_scale_error=self.gyro_scale_error, accel_bias_sigma=self.accel_bias_sigma,
                              gyro_bias_sigma=self.gyro_bias_sigma, rel_floor=self.scale_rel_floor,
-                             accel_bias_walk=self.accel_bias_walk, gyro_bias_walk=self.gyro_bias_walk)
+                             accel_bias_walk=self.accel_bias_walk, gyro_bias_walk=self.gyro_bias_walk,
+                             time_offset_sigma=self.time_offset_sigma)

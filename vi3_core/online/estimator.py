@@ -331,7 +331,8 @@ class OnlineEstimator:
         g_sigma, v_sigma = res.state_sigma(k)
         fit = ScaleFit(lam=float(res.state.lam[k]), scale_rel_sigma=rel, v1=v_k, v1_sigma=v_sigma, g_sigma=g_sigma,
                        sigma_v=own.sigma_v, dof=float(res.dof[k]), variance_factor=res.variance_factor,
-                       converged=res.converged, window_clips=k + 1)
+                       converged=res.converged, window_clips=k + 1, time_offset=res.state.td,
+                       time_offset_sigma=res.time_offset_sigma)
         diag = dict(free.diagnostics)
         st = res.state
         if not (s > 0.0 and rel <= io.max_scale_sigma):

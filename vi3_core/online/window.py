@@ -94,7 +94,7 @@ class Window:
             cov = (V * np.maximum(w, BA_FLOOR**2)) @ V.T + ba_widen * np.eye(3)
             sqrt_info = np.zeros((3, PriorLayout.n))
             sqrt_info[:, PriorLayout.ba] = np.linalg.cholesky(np.linalg.inv(cov)).T
-            center = PriorLayout.vector(np.zeros(3), mean, np.zeros(3), np.zeros(3), 0.0)
+            center = PriorLayout.vector(np.zeros(3), mean, np.zeros(3), np.zeros(3), 0.0, 0.0)
             self.prior = GaussianPrior(center, sqrt_info, np.zeros(3))
 
     def solve(self, new: Member, imu: ImuSamples, bg: np.ndarray, bg_sigma: float, T_BC: np.ndarray) -> Solution:
