@@ -194,6 +194,8 @@ PARAMS: tuple[Param, ...] = (
     Param("time_offset_sigma", InitOptions, "s; how far the camera-IMU time offset (time_offset, Kalibr "
           "timeshift_cam_imu) may be off: the error model estimates the rest and widens every scale's sigma by what it "
           "cannot rule out", range=(1e-6, 1.0)),
+    Param("visual_drift", InitOptions, "the online window estimates a random walk of the backbone's positions "
+          "(errors correlated in time) from its clips' residuals and widens the scales' sigmas by it"),
     Param("scale_rel_floor", InitOptions, "relative scale error the error model does not see "
             "(added to every sigma)", range=(0.0, 1.0)),
     Param("min_accel_rms", InitOptions, "m/s^2; below it scale is unobservable and the clip is "

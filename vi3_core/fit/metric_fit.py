@@ -40,6 +40,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from vi3_core import so3
 from vi3_core.fit.layout import N_CLIP, PriorLayout, StateLayout
@@ -151,11 +152,12 @@ class MetricFit:
     pre: ``preintegrate(imu, fit_stamps(clips), bg, jacobians=True)``, B0 at its first stamp; its bg is the prior's
     mean and the linearisation point of the gyro bias, and bg_sigma (rad/s, floored at ``noise.gyro_bias_sigma``)
     that estimate's 1-sigma; T_BC [4,4]; scale_links [K-1]: the ``ScaleLink`` between clips k-1 and k at k-1, or
-    None where they have none (empty: none at all)."""
+    None where they have none (empty: none at all); estimate_walk: estimate a random walk of the backbone's positions
+    (``solve``)."""
 
     def __init__(self, clips: list[FitClip], pre: Preintegration, T_BC: np.ndarray, *, noise: ImuNoiseModel,
-                 gravity_norm: float, bg_sigma: float = 0.0,
-                 scale_links: Sequence[ScaleLink | None] = ()) -> None:
+                 gravity_norm: float, bg_sigma: float = 0.0, scale_links: Sequence[ScaleLink | None] = (),
+                 estimate_walk: bool = False) -> None:
         if pre.J is None or not np.array_equal(pre.stamps, fit_stamps(clips)):
             raise ValueError("MetricFit: pre must be preintegrate(imu, fit_stamps(clips), bg, jacobians=True)")
         if scale_links and len(scale_links) != len(clips) - 1:
@@ -181,12 +183,13 @@ class MetricFit:
             J_ba = J.alpha_ba[ii] - J.alpha_ba[f] - J.beta_ba[f] * dtau[:, None, None]
             J_bg = J.alpha_bg[ii] - J.alpha_bg[f] - J.beta_bg[f] * dtau[:, None, None]
             D, U = np.linalg.eigh(noise.position_cov(dtau, so3.angle(R_rel), gravity_norm))
+            walk = U.T @ np.minimum(dtau[:, None], dtau[None, :]) @ U  # a random walk's kernel on the modes, s
             self.blocks.append(_Block(
                 first=f, row=row, dtau=dtau, half_dtau2=0.5 * dtau**2, R_f=R_f,
                 a=np.asarray(clip.T_wc, np.float64)[:, :3, 3] @ T_BC[:3, :3].T, lever=lever_arm_terms(R_rel, T_BC),
                 alpha=pre.alpha[ii] - pre.alpha[f] - pre.beta[f] * dtau[:, None], dbeta=pre.beta[ii] - pre.beta[f],
                 J_ba=J_ba,
-                imu_var=np.maximum(D, 0.0), imu_modes=U.T, dtau_RfT=dtau[:, None, None] * R_f.T[None],
+                imu_var=np.maximum(D, 0.0), imu_modes=U.T, walk_modes=walk, dtau_RfT=dtau[:, None, None] * R_f.T[None],
                 RfT_J_ba=R_f.T @ J_ba, RfT_J_bg=R_f.T @ J_bg, RfT_hat_phi=(R_f.T @ _HAT_E @ J.phi_bg[f]).reshape(3, 9)))
             row += 3 * len(dtau)
         self._bias_rows = np.zeros((7, L.n))
@@ -194,6 +197,8 @@ class MetricFit:
         self._bias_rows[3:6, L.bg] = np.eye(3) / self.bg_sigma
         self._bias_rows[6, L.td] = 1.0 / noise.time_offset_sigma
         self.link_scale = 1.0  # the ties' sigma relative to the noise model (variance component, see ``solve``)
+        self.walk = 0.0  # m^2/s: the variance rate of a random walk of the backbone's positions (``solve``)
+        self.estimate_walk = estimate_walk
         f = np.array([b.first for b in self.blocks])
         f0, f1 = f[:-1], f[1:]
         dt = pre.tau[f1] - pre.tau[f0]
@@ -208,7 +213,7 @@ class MetricFit:
     def _model(self, s: FitState, priors: tuple[GaussianPrior, ...]):
         """Residual y (model minus observation) and Jacobian A [m, p] at ``s`` with every row whitened but the visual
         ones: those are projected on the modes of their clip's IMU position covariance (``_Block.imu_modes``, rows
-        (mode, axis)) and left unscaled, for ``_weights`` (their noise varies with sigma_v and lam) or the noise
+        (mode, axis)) and left unscaled, for ``_whiten`` (their noise varies with sigma_v and lam) or the noise
         estimate; the row ranges by factor ("vis k", "link k" between clips k-1 and k, "bias", "prior i") and g's
         tangent basis [3,2]."""
         G, L, K = self.G, self.layout, self.K
@@ -275,20 +280,35 @@ class MetricFit:
                 r0 = r1
         return y, A, rows, B
 
-    def _weights(self, s: FitState, sigma_v: np.ndarray, m: int) -> np.ndarray:
-        """[m] weights that whiten ``_model``'s rows: a visual row on mode j of clip k has variance sigma_v,k^2 +
-        lam_k^2 d_j (d_j the mode's IMU position variance), the other rows are whitened already."""
-        w = np.ones(m)
+    def _whitener(self, s: FitState, sigma_v: np.ndarray, k: int) -> np.ndarray:
+        """[n] weights, or [n,n] matrix W, that whiten clip k's visual rows (on the modes of its IMU position
+        covariance, per axis): their covariance is sigma_v,k^2 I + lam_k^2 (D + walk M), D the modes' IMU position
+        variances, M the random walk's kernel on them; W W^T = covariance^-1 (W = L^-1, L its Cholesky factor)."""
+        blk = self.blocks[k]
+        var = sigma_v[k] ** 2 + s.lam[k] ** 2 * blk.imu_var
+        if self.walk == 0.0:
+            return 1.0 / np.sqrt(var)
+        C = np.diag(var) + (s.lam[k] ** 2 * self.walk) * blk.walk_modes
+        return solve_triangular(np.linalg.cholesky(C), np.eye(len(var)), lower=True)
+
+    def _whiten(self, s: FitState, sigma_v: np.ndarray, y: np.ndarray, A: np.ndarray) -> None:
+        """Whiten ``_model``'s visual rows of y [m] and A [m, p] in place (``_whitener``); the others are already."""
         for k, blk in enumerate(self.blocks):
-            v = sigma_v[k] ** 2 + s.lam[k] ** 2 * blk.imu_var
-            w[blk.row:blk.row + 3 * len(v)] = np.repeat(1.0 / np.sqrt(v), 3)
-        return w
+            n, W = len(blk.dtau), self._whitener(s, sigma_v, k)
+            r = slice(blk.row, blk.row + 3 * n)
+            if W.ndim == 1:
+                w = np.repeat(W, 3)
+                y[r] *= w
+                A[r] *= w[:, None]
+            else:
+                y[r] = (W @ y[r].reshape(n, 3)).reshape(-1)
+                A[r] = (W @ A[r].reshape(n, -1)).reshape(3 * n, -1)
 
     def linearise(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]):
         """``_model`` whitened: y [m], A [m, p], the row ranges and g's tangent basis [3,2]."""
         y, A, rows, B = self._model(s, priors)
-        w = self._weights(s, sigma_v, len(y))
-        return w * y, w[:, None] * A, rows, B
+        self._whiten(s, sigma_v, y, A)
+        return y, A, rows, B
 
     def _step(self, s: FitState, dx: np.ndarray, B: np.ndarray) -> FitState:
         L = self.layout
@@ -344,7 +364,53 @@ class MetricFit:
             self.link_scale = min(self.link_scale * math.sqrt(vc), 10.0)
             s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False)
             result = self._result(s, sigma_v, priors, converged)
+        # A 3DFM's errors are correlated in time (a scale drifting inside the clip, a depth-dependent bias): where the
+        # window's visual residuals show a random walk of the positions beyond each clip's white noise, its variance
+        # (restricted maximum likelihood over every clip, metric units) joins the error model before the scales are.
+        if self.estimate_walk and self.K > 1:
+            walk = self._walk_reml(s, sigma_v, priors)
+            if walk > 0.0:
+                self.walk = walk
+                s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False)
+                result = self._result(s, sigma_v, priors, converged)
         return result
+
+    def _walk_reml(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], *,
+                   iterations: int = 6) -> float:
+        """The random walk's variance rate (m^2/s of metric position, shared by the clips) that maximises the
+        restricted likelihood of the residuals at ``s``, each clip's white noise and the other rows' models held:
+        Fisher scoring in the coordinates whitened at the current value, where the covariance's derivative is
+        G = block-diag(lam_k^2 W_k M_k W_k^T) per axis and, with P the residual projector, the score is
+        (r^T G r - tr(P G)) / 2 and the information tr(P G P G) / 2. 0 where the residuals show none."""
+        walk = self.walk
+        for _ in range(iterations):
+            self.walk = walk
+            y, A, _, _ = self.linearise(s, sigma_v, priors)
+            U, sv, _ = np.linalg.svd(A, full_matrices=False)
+            Q = U[:, sv > 1e-10 * sv[0]]  # P = I - Q Q^T
+            r = y - Q @ (Q.T @ y)
+            QGQ = np.zeros((Q.shape[1], Q.shape[1]))
+            rGr = trG = trGG = trQGG = 0.0
+            for k, blk in enumerate(self.blocks):
+                n, W = len(blk.dtau), self._whitener(s, sigma_v, k)
+                G = s.lam[k] ** 2 * (W @ blk.walk_modes @ W.T if W.ndim == 2 else np.outer(W, W) * blk.walk_modes)
+                rows = slice(blk.row, blk.row + 3 * n)
+                rk, Qk = r[rows].reshape(n, 3), Q[rows].reshape(n, 3, -1)
+                rGr += float(np.sum(rk * (G @ rk)))
+                trG += 3.0 * float(np.trace(G))
+                trGG += 3.0 * float(np.sum(G * G))
+                GQ = np.einsum("ij,jak->iak", G, Qk)
+                QGQ += np.einsum("iak,ial->kl", Qk, GQ)
+                trQGG += float(np.einsum("iak,iak->", GQ, GQ))
+            score = 0.5 * (rGr - (trG - np.trace(QGQ)))
+            info = 0.5 * (trGG - 2.0 * trQGG + float(np.sum(QGQ * QGQ.T)))
+            new = max(walk + score / info, 0.0) if info > 0 else walk
+            if abs(new - walk) <= 1e-3 * max(new, 1e-12):
+                walk = new
+                break
+            walk = new
+        self.walk = 0.0
+        return walk
 
     def _gauss_newton(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], iterations: int,
                       tol: float, estimate: bool) -> tuple[FitState, bool]:
@@ -352,12 +418,11 @@ class MetricFit:
             y, A, _, B = self._model(s, priors)
             if estimate and it == 0:  # at the linear starting point: re-estimating it later changes nothing
                 sigma_v[0] = self._visual_noise(s, y, A)
-            w = self._weights(s, sigma_v, len(y))
-            dx = lstsq(w[:, None] * A, w * y)
+            self._whiten(s, sigma_v, y, A)
+            dx = lstsq(A, y)
             s = self._step(s, dx, B)
             if it >= 1 and np.all(np.abs(dx[self.layout.lams]) <= tol * np.abs(s.lam)) \
                     and np.abs(dx[self.layout.g]).max() <= 0.1 * tol:
-
                 return s, True
         return s, False
 
@@ -434,7 +499,8 @@ class _Block:
     dtau, half_dtau2 = dtau^2 / 2 [n]; R_f [3,3]; a [n,3]; lever [n,3]; alpha [n,3] (bias-free displacement part, B0);
     dbeta [n,3] (bias-free velocity change from the first frame, B0);
     J_ba [n,3,3]; its IMU position covariance (``ImuNoiseModel.position_cov``) as variances imu_var [n] (m^2) along
-    the rows of imu_modes [n,n] (orthonormal); the constant Jacobian factors dtau_RfT, RfT_J_ba, RfT_J_bg [n,3,3]
+    the rows of imu_modes [n,n] (orthonormal); walk_modes [n,n] s, the kernel min(dtau_i, dtau_j) of a random walk of
+    the positions on those modes; the constant Jacobian factors dtau_RfT, RfT_J_ba, RfT_J_bg [n,3,3]
     (R_f^T times the displacement's bias Jacobians); and RfT_hat_phi [3,9], R_f^T hat(e_a) phi_f for the axes a
     (phi_f: the first frame's rotation Jacobian), so that d @ RfT_hat_phi is R_f^T hat(d_i) phi_f, flattened."""
 
@@ -450,6 +516,7 @@ class _Block:
     J_ba: np.ndarray
     imu_var: np.ndarray
     imu_modes: np.ndarray
+    walk_modes: np.ndarray
     dtau_RfT: np.ndarray
     RfT_J_ba: np.ndarray
     RfT_J_bg: np.ndarray

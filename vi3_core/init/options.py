@@ -38,6 +38,9 @@ class InitOptions:
             scale_rel_floor, accel_bias_walk, gyro_bias_walk, time_offset_sigma: the IMU error model of the "eiv" fit
             (``ImuNoiseModel``; scale_rel_floor is its ``rel_floor``; time_offset_sigma, s, how far the configured
             camera-IMU time offset may be off: the fit estimates the rest and widens the scale's sigma by it).
+        visual_drift: the online window estimates a random walk of the backbone's positions (temporally correlated
+            errors: a scale drifting inside a clip, a depth-dependent bias) beside each clip's white noise, from the
+            residuals of all its clips, and widens the scales' sigmas by it.
         max_scale_sigma: a scale whose relative 1-sigma exceeds this is not claimed (status unobservable). At 4 %
             a claimed scale 10 % off is a 2.5-sigma event (about 1 % of the claims at the limit, fewer below it).
         max_rotation_error: a clip whose backbone relative rotations disagree with the bias-corrected gyro by more
@@ -69,6 +72,7 @@ class InitOptions:
     accel_bias_walk: float = ImuNoiseModel.accel_bias_walk
     gyro_bias_walk: float = ImuNoiseModel.gyro_bias_walk
     time_offset_sigma: float = ImuNoiseModel.time_offset_sigma
+    visual_drift: bool = True
     max_scale_sigma: float = 0.04
     max_rotation_error: float = 2.0
     min_accel_rms: float = 0.15

@@ -125,7 +125,8 @@ class OnlineEstimator:
             raise ValueError("the online window needs scale_solver 'eiv' (its error model); the paper's solvers run "
                              "on independent clips only")
         self.window = Window(noise=self.init_options.noise_model, gravity_norm=self.init_options.gravity_norm,
-                             window_s=self.options.online_window, max_clips=self.options.online_max_clips)
+                             window_s=self.options.online_window, max_clips=self.options.online_max_clips,
+                             visual_drift=self.init_options.visual_drift)
         self.state: OdomState | None = None
         self.trajectory = Trajectory()
         self.last = OnlineDecision()

@@ -75,8 +75,10 @@ class Window:
     estimates (for a restart). ``solve`` fits a candidate clip with them without changing anything; ``commit`` makes
     that fit the window and marginalises members older than ``window_s`` (or beyond ``max_clips``)."""
 
-    def __init__(self, *, noise: ImuNoiseModel, gravity_norm: float, window_s: float, max_clips: int) -> None:
+    def __init__(self, *, noise: ImuNoiseModel, gravity_norm: float, window_s: float, max_clips: int,
+                 visual_drift: bool = True) -> None:
         self.noise, self.G, self.window_s, self.max_clips = noise, gravity_norm, window_s, max_clips
+        self.visual_drift = visual_drift
         self.members: list[Member] = []
         self.prior: GaussianPrior | None = None
         self.ba: tuple[np.ndarray, np.ndarray] | None = None  # last (ba [3], covariance [3,3]) estimate
@@ -105,7 +107,8 @@ class Window:
         stamps = fit_stamps(clips)
         pre = preintegrate(imu.window(float(stamps[0]), float(stamps[-1])), stamps, bg, jacobians=True)
         links = [m.link if m.link_to == float(prev.stamps[0]) else None for prev, m in zip(members, members[1:])]
-        fit = MetricFit(clips, pre, T_BC, noise=self.noise, gravity_norm=self.G, bg_sigma=bg_sigma, scale_links=links)
+        fit = MetricFit(clips, pre, T_BC, noise=self.noise, gravity_norm=self.G, bg_sigma=bg_sigma, scale_links=links,
+                        estimate_walk=self.visual_drift)
         R0 = [pre.R[b.first] for b in fit.blocks]
         lam = np.array([m.lam for m in members])
         state = fit.initial_state(R0[0] @ members[0].g, np.where(np.isfinite(lam) & (lam > 0), lam, np.nan))
