@@ -186,8 +186,8 @@ def test_a_late_failure_writes_what_was_computed_and_says_it_is_partial(generate
     tum = tmp_path / "tum"
     (tum / "clip000_base.txt").mkdir(parents=True)  # a folder where a file must go
     json_out = tmp_path / "eval.json"
-    rc = cli.main(["eval", str(broken), "--independent", "--clips", "sliding", "--no-progress",
-                   "--json-out", str(json_out), "--export-tum", str(tum)])
+    rc = cli.main(["eval", str(broken), "--independent", "--clips", "sliding", "--no-progress", "--param",
+                   "max_scale_sigma=10", "--json-out", str(json_out), "--export-tum", str(tum)])  # gate open: plumbing
     captured = capsys.readouterr()
     assert rc == 2
     obj = json.loads(json_out.read_text())

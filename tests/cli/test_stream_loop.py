@@ -14,7 +14,8 @@ from vi3_core.backbones import make_backbone
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
-from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.dataset.sequence import make_clip
+from vi3_core.eval.runner import EvalOptions, clip_indices
 from vi3_core.online import StreamEstimator
 from vi3_ros.cli import main as vi3_main
 
@@ -26,7 +27,7 @@ def test_stream_estimator_is_what_eval_and_replay_run(cache_dir, tmp_path, capsy
     seq = read_asl(asl)
     stream = StreamEstimator(make_backbone("classical"))
     direct = []
-    for idx in sample_clips(len(seq), mode="sliding"):
+    for idx in clip_indices(len(seq), options=EvalOptions(clips="sliding"), chained=True):
         clip = make_clip(seq, idx, history_s=stream.online_options.online_max_bridge, with_depth=False)
         out = stream.process(clip)
         direct.append((out.init.status.value, out.init.scale_sigma / out.init.scale if out.init.ok else None,

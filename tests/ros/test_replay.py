@@ -44,7 +44,8 @@ from vi3_ros.replay_bench import bench_replay
 
 pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
 
-CLIP_FRAMES = 16  # clip_length 8 x stride 2, non-overlapping
+CLIP_HOP = 14  # input frames between clip starts: clip_length 8 x stride 2, each sharing its first frame with the last
+CLIP_FRAMES = np.arange(0, 16, 2)  # a clip's frames from its start
 
 
 def _publish_atomically(dst: Path, build: Callable[[Path], None]) -> Path:
@@ -146,7 +147,7 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
     seq = read_asl(asl)
     msgs = _read(out)
     poses = msgs["/vi3_node/poses"]
-    n_clips = sum(start + CLIP_FRAMES - 2 < len(seq.stamps) for start in range(0, len(seq.stamps), CLIP_FRAMES))
+    n_clips = sum(start + CLIP_FRAMES[-1] < len(seq.stamps) for start in range(0, len(seq.stamps), CLIP_HOP))
     statuses = _statuses(msgs)
     claimed = [int(s.values["clip"]) for s in statuses if s.values["result"] == "init"]
     # One PoseArray per claimed clip; a clip is claimed once the online window's error model supports its scale
@@ -155,7 +156,7 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
     assert all(s.values["init_status"] == "ok" or "relative sigma" in s.values["reason"] for s in statuses)
     scales = []
     for k, pa in zip(claimed, poses):
-        idx = k * CLIP_FRAMES + np.arange(0, CLIP_FRAMES, 2)
+        idx = k * CLIP_HOP + CLIP_FRAMES
         assert stamp_to_ns(pa.header.stamp) == seq.stamps_ns[idx[-1]] and pa.header.frame_id == "vi3_clip"
         T = poses_to_T(pa.poses)
         np.testing.assert_allclose(T[0], np.eye(4), atol=1e-6)
@@ -163,8 +164,8 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
     assert 0.9 <= np.median(scales) <= 1.1, scales  # Scale (Traj.) of the fast path: metric
     depth = msgs["/vi3_node/depth"]
     assert len(depth) == 8 * len(claimed) and {d.encoding for d in depth} == {"32FC1"}
-    first = claimed[0] * CLIP_FRAMES
-    assert [stamp_to_ns(d.header.stamp) for d in depth[:8]] == seq.stamps_ns[first:first + CLIP_FRAMES:2].tolist()
+    first = claimed[0] * CLIP_HOP
+    assert [stamp_to_ns(d.header.stamp) for d in depth[:8]] == seq.stamps_ns[first + CLIP_FRAMES].tolist()
     d0 = image_to_numpy(depth[0])
     assert d0.dtype == np.float32 and np.nanmedian(d0) > 0.3
     for pc in msgs["/vi3_node/points"]:
@@ -234,7 +235,7 @@ def _diag_messages(msgs) -> list[str]:
 def _clip_window(asl: Path, clip: int) -> tuple[int, int]:
     """First and last frame stamps (ns) of clip ``clip`` of the unedited sequence."""
     seq = read_asl(asl)
-    idx = clip * CLIP_FRAMES + np.arange(0, CLIP_FRAMES, 2)
+    idx = clip * CLIP_HOP + CLIP_FRAMES
     return int(seq.stamps_ns[idx[0]]), int(seq.stamps_ns[idx[-1]])
 
 
@@ -328,7 +329,9 @@ def test_fault_stationary_stretch(bag3, tmp_path):
             m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z = map(float, f_B)
         return [(t, m)]
 
-    summary, msgs = _run(_edited(src, tmp_path / "still", still, until_ns=_two_clips(asl)), tmp_path / "out.mcap")
+    # cut after the third clip: the second shares the frozen frame (an image of the start at a later pose)
+    summary, msgs = _run(_edited(src, tmp_path / "still", still, until_ns=_clip_window(asl, 2)[1] + 60_000_000),
+                         tmp_path / "out.mcap")
     first = _statuses(msgs)[0]
     # The clip publishes no geometry, says why on ~/status and /diagnostics, and the stream goes on.
     assert (first.values["result"], first.values.get("init_status")) == ("none", "unobservable"), first.values
@@ -349,7 +352,7 @@ def test_fault_missing_calibration_then_camera_info(bag3, tmp_path):
     c = EUROC_CAM0
     info = [("/cam0/camera_info", t, calib_to_camera_info(c.K, "plumb_bob", np.r_[c.dist, 0.0], c.size, stamp_ns=t,
                                                           frame_id="cam0", types=types))
-            for t in range(t0 - 20_000_000, t1 + 2_000_000_000, 50_000_000)]
+            for t in range(t0 + 20_000_000, t1 + 2_000_000_000, 50_000_000)]  # after clip 0 (its last frame is t0)
     tf = tf_message([(c.T_BC, "imu0", "cam0", t0 - 50 * 10**9)], types=types)
     first_t = int(read_asl(asl).imu_ns[0])
     bag = _edited(src, tmp_path / "calib", lambda topic, t, m: [(t, m)], until_ns=_two_clips(asl),
