@@ -64,7 +64,9 @@ def test_independent_clips_on_ray_match_the_serial_run(local_ray, sequence_dir, 
     runs = {}
     for name, extra in (("serial", ["--no-progress"]), ("ray", ["--ray"])):
         out = tmp_path / name
-        rc, text, err = _eval([sequence_dir, "--independent", *HOP, "--json-out", out / "eval.json", "--plot",
+        # the gate open: serial and Ray must agree on claimed clips too, whoever claims them
+        rc, text, err = _eval([sequence_dir, "--independent", *HOP, "--param", "max_scale_sigma=10", "--json-out",
+                               out / "eval.json", "--plot",
                                out / "eval.png", "--export-tum", out / "tum", *extra], capsys)
         assert rc == 0, err
         runs[name] = (out, text, err)

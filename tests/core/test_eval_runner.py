@@ -12,6 +12,7 @@ from vi3_core.backbones import make_backbone
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.eval import report, runner
+from vi3_core.init import InitOptions
 from vi3_ros import cli
 
 SECONDS = 2.0  # 41 frames: room for the paper's start / middle / end clips of 8 frames at stride 2
@@ -24,7 +25,8 @@ def sequence_dir(cache_dir):
 
 @pytest.fixture(scope="module")
 def evals(sequence_dir):
-    options = runner.EvalOptions(mode="init", max_clips=2, progress=False)
+    # the gate open (as OPEN_GATE in test_replay): these check the metrics of claimed clips, not which are claimed
+    options = runner.EvalOptions(mode="init", max_clips=2, progress=False, init_options=InitOptions(max_scale_sigma=10))
     return runner.evaluate_sequence(read_asl(sequence_dir), make_backbone("classical"), options=options)
 
 
@@ -101,7 +103,8 @@ def test_vi3_demo_names_a_missing_input(tmp_path, capsys) -> None:
 
 @pytest.mark.slow
 def test_vi3_eval_ablate_json_has_every_variant(sequence_dir, capsys) -> None:
-    rc = cli.main(["eval", str(sequence_dir), "--ablate", "--json", "--max-clips", "1", "--no-progress"])
+    rc = cli.main(["eval", str(sequence_dir), "--ablate", "--json", "--max-clips", "1", "--no-progress", "--param",
+                   "max_scale_sigma=10"])
     obj = json.loads(capsys.readouterr().out)
     assert rc == 0 and list(obj["ablations"]) == list(runner.ABLATIONS)
     for name, s in obj["ablations"].items():

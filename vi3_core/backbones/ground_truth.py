@@ -30,9 +30,12 @@ class GroundTruthPoses(Backbone):
     needs_images = False
 
     def __init__(self, *, noise: PoseNoise | None = None, depth_noise: DepthNoise | None = None, seed: int = 0,
-                 device: str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+                 true_T_BC: np.ndarray | None = None, device: str = "cpu", dtype: torch.dtype = torch.float32) -> None:
         super().__init__(device=device, dtype=dtype)
         self.noise, self.depth_noise, self.seed = noise or PoseNoise(), depth_noise or DepthNoise(), int(seed)
+        # the camera's true mount [4,4] (a wrong calibration in the clip is the user's, not the camera's); None: the
+        # clip's T_BC
+        self.true_T_BC = None if true_T_BC is None else np.asarray(true_T_BC, np.float64)
         self._clip: Clip | None = None
         self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
@@ -51,7 +54,7 @@ class GroundTruthPoses(Backbone):
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
         clip = self._clip
-        T_gt = gt_camera_poses(clip.gt, clip.T_BC)
+        T_gt = gt_camera_poses(clip.gt, clip.T_BC if self.true_T_BC is None else self.true_T_BC)
         dist = float(np.linalg.norm(T_gt[:, :3, 3], axis=1).mean())
         scale = self.last_scale = dist if dist > 0 else 1.0  # metres per model unit
         rng = np.random.default_rng([self.seed, int(round(float(clip.stamps[0]) * 1e6))])
