@@ -43,8 +43,9 @@ class ClipBufferOptions:
     restarts collection (<= 0: automatic, 1.5 x the median of the recent frame intervals); time_offset: s, t_imu =
     t_cam + time_offset; imu_margin: IMU samples needed beyond the last frame; imu_buffer: bounded IMU buffer
     (samples); imu_timeout: s of camera time a complete clip waits for IMU before it is dropped; imu_history: s of IMU
-    kept before the clip's first frame in ``RawClip.imu_history`` (long-window gravity seed; 0 = none); max_pending:
-    complete clips waiting for IMU."""
+    kept before the clip's first frame in ``RawClip.imu_history`` (long-window gravity seed; 0 = none), which also
+    reaches imu_lead s beyond its last frame (a clip waits for those, so that an estimated time offset of up to
+    imu_lead can be applied to it); max_pending: complete clips waiting for IMU."""
 
     clip_length: int = CLIP_LENGTH
     stride: int = CLIP_STRIDE
@@ -52,6 +53,7 @@ class ClipBufferOptions:
     max_frame_gap: float = 0.0
     time_offset: float = 0.0
     imu_margin: int = 1
+    imu_lead: float = 0.0
     imu_buffer: int = 4000
     imu_timeout: float = 0.5
     imu_history: float = 0.0
@@ -297,7 +299,8 @@ class ClipBuffer:
         out: list[RawClip | Drop] = []
         m = self.options.imu_margin
         t = self._imu.t
-        while self._pending and len(t) >= m and t[-m] > self._pending[0].stamps[-1]:
+        lead = self.options.imu_lead
+        while self._pending and len(t) >= m and t[-m] > self._pending[0].stamps[-1] + lead:
             clip = self._pending.popleft()
             t0, t1 = float(clip.stamps[0]), float(clip.stamps[-1])
             i0, i1 = window_bounds(t, t0, t1, m)  # the evaluation's rule: a sample at or before t0 is enough
@@ -308,7 +311,7 @@ class ClipBuffer:
             hist = None
             if self.options.imu_history > 0:
                 h0 = min(i0, max(int(np.searchsorted(t, t0 - self.options.imu_history, side="right")) - 1, 0))
-                hist = self._imu.samples(h0, i1)
+                hist = self._imu.samples(h0, window_bounds(t, t0, t1 + lead, m)[1])
             self.clips += 1
             out.append(RawClip(clip.index, clip.stamps, clip.stamps_ns, clip.images, self._imu.samples(i0, i1), hist))
         return out

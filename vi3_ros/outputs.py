@@ -22,6 +22,7 @@ from msg_adapters.poses import odometry, path, pose_array, tf_message
 from msg_adapters.types import MessageTypes
 from vi3_core.camera import backproject
 from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
+from vi3_core.online.calibration import RigEstimate
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
 from vi3_ros.settings import Settings
 
@@ -132,12 +133,13 @@ class ClipPublisher:
 
 def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: float, *, drops: str,
                 clip_frame: str, result: AnchorResult | None = None, decision: OnlineDecision | None = None,
-                trajectory: Trajectory | None = None) -> DiagStatus:
+                trajectory: Trajectory | None = None, rig: RigEstimate | None = None) -> DiagStatus:
     """The ``~/status`` entry of one result of the node's clip ``index``, processed as ``clip`` (the frames it spans:
     ``t_first``, ``t_last``): ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
     wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
-    ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), and with the online
-    window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment."""
+    ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), with the online
+    window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment, and the
+    ``rig``'s self-calibration (key ``rig``)."""
     level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
     if drops and level is Level.OK:
         level = Level.WARN
@@ -161,6 +163,8 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
         values["odom_segment"] = len(trajectory.resets)  # 0: the first; each reset starts one (its first frame)
         if trajectory.resets:
             values["odom_segment_start"] = f"{trajectory.resets[-1]:.9f}"
+    if rig is not None:
+        values["rig"] = rig.describe()
     if result is not None and kind != "init":
         values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})

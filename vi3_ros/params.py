@@ -23,6 +23,7 @@ from vi3_core.anchor.options import MODES, AnchorOptions
 from vi3_core.backbones import BACKBONES
 from vi3_core.errors import DataError
 from vi3_core.init.options import SCALE_SOLVERS, InitOptions
+from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.online.options import OnlineOptions
 from vi3_core.online.stream import StreamOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
@@ -141,6 +142,27 @@ PARAMS: tuple[Param, ...] = (
           "the drop; 0: never (the classical backbone cannot register views seconds apart)", range=(0.0, 60.0)),
     Param("link_sigma_floor", OnlineOptions, "relative 1-sigma added to every scale link for what the spread of its "
           "depth blocks cannot show", range=(0.0, 1.0)),
+    # self-calibration of the rig (vi3_core.online.calibration)
+    Param("self_calibration", CalibrationOptions, "estimate the camera mount's rotation and the camera-IMU time offset "
+          "from the backbone's rotations against the gyro, over the flight; each replaces the configured one once "
+          "its sigma passes its limit (false: the calibration as configured)"),
+    Param("calib_max_rotation_sigma", CalibrationOptions, "deg; the estimated mount rotation replaces the configured "
+          "one once its largest 1-sigma is below this", range=(0.001, 10.0)),
+    Param("calib_max_offset_sigma", CalibrationOptions, "s; the estimated time offset replaces the configured one "
+          "once its 1-sigma is below this", range=(1e-5, 0.1)),
+    Param("calib_prior_rotation", CalibrationOptions, "deg; how far the configured mount rotation may be off",
+          range=(0.01, 90.0)),
+    Param("calib_prior_offset", CalibrationOptions, "s; how far the configured time offset may be off (clips also "
+          "wait for this much IMU beyond their last frame, so that an estimate of up to it can be applied)",
+          range=(1e-4, 0.5)),
+    Param("calib_rotation_walk", CalibrationOptions, "deg/sqrt(s); how fast the mount's rotation may change in flight "
+          "(a random walk between clips)", range=(1e-6, 10.0)),
+    Param("calib_offset_walk", CalibrationOptions, "s/sqrt(s); how fast the time offset may change in flight",
+          range=(1e-8, 0.1)),
+    Param("calib_tolerance_rotation", CalibrationOptions, "deg; /diagnostics warns when the estimate is sure the "
+          "configured mount is off by more than this", range=(0.0, 90.0)),
+    Param("calib_tolerance_offset", CalibrationOptions, "s; /diagnostics warns when the estimate is sure the "
+          "configured time offset is off by more than this", range=(0.0, 1.0)),
     # clip buffer
     Param("clip_length", ClipBufferOptions, "frames per clip (n)", range=(2, 64)),
     Param("stride", ClipBufferOptions, "use every stride-th input frame", range=(1, 100)),

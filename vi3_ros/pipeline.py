@@ -47,6 +47,7 @@ from vi3_core.backbones import make_backbone
 from vi3_core.dataset.calib import load_calib
 from vi3_core.errors import CalibrationError, DataError
 from vi3_core.online import OnlineDecision, StreamEstimator
+from vi3_core.online.calibration import RigEstimate
 from vi3_core.threads import use_torch_threads
 from vi3_core.types import AnchorResult, Clip, InitResult
 from vi3_ros.calibration import Calibration, FrameMisfit, frame_problem, make_clip
@@ -63,8 +64,9 @@ MAX_IMU_RATE_HZ = 400.0
 def buffer_options(settings: Settings) -> ClipBufferOptions:
     """The clip buffer's options of ``settings``: with ``online``, the IMU history covers the bridge from the previous
     clip (up to ``online_max_bridge``), the bounded IMU buffer holds that history (at up to MAX_IMU_RATE_HZ) plus a
-    clip, and without a ``hop`` clips start every (clip_length - shared_frames) * stride frames (each shares its first
-    frames with the one before). Raises DataError when shared_frames leaves a clip no frame of its own."""
+    clip, without a ``hop`` clips start every (clip_length - shared_frames) * stride frames (each shares its first
+    frames with the one before), and with ``self_calibration`` a clip waits for ``calib_prior_offset`` s of IMU beyond
+    its last frame. Raises DataError when shared_frames leaves a clip no frame of its own."""
     opts = settings.buffer
     if not settings.stream.online:
         return opts
@@ -74,7 +76,8 @@ def buffer_options(settings: Settings) -> ClipBufferOptions:
     history = max(opts.imu_history, settings.online.online_max_bridge)
     span = history + (opts.clip_length - 1) * opts.stride * 0.2 + opts.imu_timeout + 1.0  # a clip at 5 Hz or faster
     hop = opts.hop if opts.hop is not None else (opts.clip_length - shared) * opts.stride
-    return dataclasses.replace(opts, imu_history=history, hop=hop,
+    lead = settings.calibration.calib_prior_offset if settings.calibration.self_calibration else opts.imu_lead
+    return dataclasses.replace(opts, imu_history=history, hop=hop, imu_lead=lead,
                                imu_buffer=max(opts.imu_buffer, int(span * MAX_IMU_RATE_HZ)))
 
 
@@ -105,7 +108,7 @@ class Pipeline:
                  on_report: Callable[[ClipReport], None] | None = None) -> None:
         self.settings = settings
         self.stream = StreamEstimator(backbone, options=settings.stream, online=settings.online, init=settings.init,
-                                      anchor=settings.anchor)
+                                      anchor=settings.anchor, calibration=settings.calibration)
         self.calibration = calibration
         self.sink = sink
         self.types = types
@@ -115,6 +118,7 @@ class Pipeline:
         self.imu_odom = ImuOdometry(settings, types=types, publish=self._publish) \
             if settings.stream.online and settings.outputs.imu_odom_rate > 0 else None
         self._stopping = threading.Event()  # set by close(): ends a backbone_delay early
+        self._rig: RigEstimate | None = None  # the rig's latest self-calibration
         self._lock = threading.Lock()  # guards the buffer and counters (executor thread vs worker thread)
         # Dropped input messages by reason: since the last clip status, in this diagnostics period, and the reasons
         # of the previous period (a reason in neither is news, published at once).
@@ -237,6 +241,7 @@ class Pipeline:
             return  # closing: the clip's outputs would be discarded anyway
         latency = time.perf_counter() - t_start
         chained, clip = outcome.chained, outcome.clip
+        self._rig = outcome.calibration
         if outcome.init.ok and outcome.mode != "none":
             T_OC1 = chained.T_OB[0] @ clip.T_BC if chained is not None and self.settings.frames.outputs_in_odom \
                 else None
@@ -285,7 +290,7 @@ class Pipeline:
         without online)."""
         status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
-                             trajectory=self.stream.trajectory)
+                             trajectory=self.stream.trajectory, rig=self._rig)
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),
                    status, final=kind != "init" or self.settings.stream.mode == "init")
 
@@ -314,6 +319,13 @@ class Pipeline:
             values.update({f"drop_{k}": n for k, n in sorted((self.buffer.counts + self.message_drops).items())})
         if self.imu_odom is not None:
             values["imu_odom"] = self.imu_odom.status
+        rig = self._rig
+        if rig is not None:
+            values["rig"] = rig.describe()
+            off = rig.off_by()
+            if off and level is Level.OK:
+                level, message = Level.WARN, (f"the configured calibration is off: {off} (estimated from the flight; "
+                                              "vi3 calib prints the corrected Kalibr file)")
         return DiagStatus(level, DIAG_NAME, message, self.settings.frames.clip_frame, values)
 
     def publish_diagnostics(self, stamp_ns: int) -> None:

@@ -11,6 +11,7 @@ from typing import Any
 
 from vi3_core.anchor.options import AnchorOptions
 from vi3_core.init.options import InitOptions
+from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.online.options import OnlineOptions
 from vi3_core.online.stream import StreamOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
@@ -84,6 +85,7 @@ class Settings:
     online: OnlineOptions = field(default_factory=OnlineOptions)
     init: InitOptions = field(default_factory=InitOptions)
     anchor: AnchorOptions = field(default_factory=AnchorOptions)
+    calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
 
     def value(self, name: str) -> Any:
         """The value of parameter ``name`` (as the options field holds it: ``hop`` None where the parameter says 0)."""

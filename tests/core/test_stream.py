@@ -18,6 +18,7 @@ from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.eval.coverage import motion_start
 from vi3_core.online import OnlineOptions, StreamEstimator
+from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.sim.visual import DepthNoise, PoseNoise
 
 pytestmark = pytest.mark.slow  # renders 14 s of a real flight once (cached), then runs it through the estimator
@@ -31,11 +32,11 @@ def takeoff(euroc_v102, cache_dir):
     return read_asl(cached_sequence(cache_dir, seconds=14.0, seed=0, from_euroc=recording, start_s=2.0) / "mav0")
 
 
-def _run(seq, online: OnlineOptions, *, clips=None, seed: int = 0):
+def _run(seq, online: OnlineOptions, *, clips=None, seed: int = 0, calibration: CalibrationOptions | None = None):
     """The stream's outcomes over ``clips`` (default: every clip, each sharing its first frame with the one before)
     and the instrument's true metres per model unit of each."""
     instrument = GroundTruthPoses(noise=PoseNoise(0.003, 0.1), depth_noise=DepthNoise(0.05, 0.02), seed=seed)
-    stream = StreamEstimator(instrument, online=online)
+    stream = StreamEstimator(instrument, online=online, calibration=calibration)
     clips = clips if clips is not None else sample_clips(len(seq), mode="sliding", hop=14)
     out = []
     for idx in clips:
@@ -88,8 +89,10 @@ def test_a_clip_after_dropped_ones_gets_the_shared_frame_in_place_of_its_first(t
 
 
 def test_without_shared_frames_the_window_is_todays(takeoff):
-    """shared_frames 0 and back-to-back clips: no link, no clip composed, the decisions say nothing of links."""
+    """shared_frames 0, back-to-back clips and no self-calibration: no link, no clip changed, the decisions say nothing
+    of links."""
     clips = sample_clips(len(takeoff), mode="sliding")[:6]
-    outcomes = _run(takeoff, dataclasses.replace(OnlineOptions(), shared_frames=0), clips=clips)
+    outcomes = _run(takeoff, dataclasses.replace(OnlineOptions(), shared_frames=0), clips=clips,
+                    calibration=CalibrationOptions(self_calibration=False))
     assert all(o.decision.link is None and not o.decision.link_note for o, _ in outcomes)
     assert all(np.array_equal(o.clip.stamps, takeoff.stamps[idx]) for (o, _), idx in zip(outcomes, clips))

@@ -124,9 +124,9 @@ class Backbone(abc.ABC):
         return []
 
     def bind(self, clip) -> None:
-        """Called with each ``vi3_core.types.Clip`` just before it is predicted (``StreamEstimator``): nothing for a
-        model, which sees only its images; the evaluation's ground-truth instrument predicts from the clip's ground
-        truth."""
+        """Called with each ``vi3_core.types.Clip`` just before it is predicted (``StreamEstimator``, with the
+        configured calibration): nothing for a model, which sees only its images; the evaluation's ground-truth
+        instrument predicts from the clip's ground truth."""
         return
 
     def diagnostics(self) -> dict:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vi3_core import so3
 from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.dataset.sequence import gt_camera_poses
 from vi3_core.errors import DataError
@@ -30,17 +31,18 @@ class GroundTruthPoses(Backbone):
     needs_images = False
 
     def __init__(self, *, noise: PoseNoise | None = None, depth_noise: DepthNoise | None = None, seed: int = 0,
-                 true_T_BC: np.ndarray | None = None, device: str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+                 mount_error: np.ndarray | None = None, device: str = "cpu",
+                 dtype: torch.dtype = torch.float32) -> None:
         super().__init__(device=device, dtype=dtype)
         self.noise, self.depth_noise, self.seed = noise or PoseNoise(), depth_noise or DepthNoise(), int(seed)
-        # the camera's true mount [4,4] (a wrong calibration in the clip is the user's, not the camera's); None: the
-        # clip's T_BC
-        self.true_T_BC = None if true_T_BC is None else np.asarray(true_T_BC, np.float64)
+        # rad [3]: the camera's true mount is the configured one (the clip's T_BC) turned by Exp(mount_error)
+        self.mount_error = np.zeros(3) if mount_error is None else np.asarray(mount_error, np.float64)
         self._clip: Clip | None = None
         self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
     def bind(self, clip: Clip) -> None:
-        """The clip whose ground truth the next prediction uses (the stream binds each clip as it processes it)."""
+        """The clip whose ground truth the next prediction uses (the stream binds each clip as it processes it, with
+        the configured calibration)."""
         if clip.gt is None:
             raise DataError(f"the gt instrument needs ground truth for the clip at {clip.stamps[0]:.6f} s")
         self._clip = clip
@@ -54,7 +56,9 @@ class GroundTruthPoses(Backbone):
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
         clip = self._clip
-        T_gt = gt_camera_poses(clip.gt, clip.T_BC if self.true_T_BC is None else self.true_T_BC)
+        T_BC = clip.T_BC.copy()
+        T_BC[:3, :3] = so3.exp(self.mount_error) @ clip.T_BC[:3, :3]
+        T_gt = gt_camera_poses(clip.gt, T_BC)
         dist = float(np.linalg.norm(T_gt[:, :3, 3], axis=1).mean())
         scale = self.last_scale = dist if dist > 0 else 1.0  # metres per model unit
         rng = np.random.default_rng([self.seed, int(round(float(clip.stamps[0]) * 1e6))])

@@ -117,11 +117,12 @@ class Sequence:
 
 
 def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, history_s: float = 2.0,
-              with_images: bool = True) -> Clip:
+              lead_s: float = 0.0, with_images: bool = True) -> Clip:
     """The clip of frames ``indices`` [n]: undistorted images (an empty [n,0,0] array without ``with_images``),
     ``calib.undistorter().K``, ``T_BC``, the IMU window with >= 1 sample beyond each end, ``imu_history`` (the
-    ``history_s`` seconds before the clip, plus the clip), and ground truth at the stamps when the track covers them
-    (depth maps included when ``with_depth``)."""
+    ``history_s`` seconds before the clip, the clip, and ``lead_s`` seconds after it, as the node's clip buffer waits
+    for them), ground truth at the stamps when the track covers them (depth maps included when ``with_depth``), and
+    the frames' recorded stamps (ns)."""
     if seq.calib is None:
         raise DataError(f"sequence {seq.name!r} has no camera calibration; cannot undistort its images")
     idx = np.asarray(indices, dtype=np.int64)
@@ -143,9 +144,9 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
             if shape is not None:  # a frame without depth is all invalid
                 depth = np.stack([np.full(shape, np.nan, np.float32) if d is None else d for d in maps])
         gt = seq.gt.at(stamps, depth=depth)
-    history = seq.imu.window(stamps[0] - history_s, stamps[-1], margin=1)
+    history = seq.imu.window(stamps[0] - history_s, stamps[-1] + lead_s, margin=1)
     return Clip(stamps=stamps, images=images, K=und.K.copy(), T_BC=seq.calib.T_BC.copy(), imu=imu, gt=gt,
-                imu_history=history)
+                imu_history=history, stamps_ns=None if seq.stamps_ns is None else seq.stamps_ns[idx])
 
 
 def gt_camera_poses(gt: GroundTruth, T_BC: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ import numpy as np
 
 from vi3_core.eval.metrics import GeometryMetrics, InitMetrics
 from vi3_core.online import OnlineDecision
+from vi3_core.online.calibration import RigEstimate
 from vi3_core.types import AnchorResult, Geometry, ImuTrajectory, InitResult
 
 
@@ -22,7 +23,7 @@ class ClipEval:
     before the backbone); fast: the fast init ``AnchorResult`` when mode is "cond"/"ttr"; columns:
     ``GeometryMetrics`` per column ("base", "init", and "cond"/"ttr" when run); init_metrics: errors of the
     initialisation against GT; decision: the online window's decision, with the clip's own initialisation (chained
-    runs only).
+    runs only); calibration: the rig's estimate after the clip (chained runs with self-calibration).
     """
 
     indices: np.ndarray
@@ -38,6 +39,7 @@ class ClipEval:
     columns: dict[str, GeometryMetrics] = field(default_factory=dict)
     init_metrics: InitMetrics | None = None
     decision: OnlineDecision | None = None
+    calibration: RigEstimate | None = None
 
     @property
     def ok(self) -> bool:

@@ -229,6 +229,7 @@ def chained_summary(run) -> dict:
     return _plain({
         "applicable": run.metrics is not None, "reason": run.reason, **m, "resets": run.resets,
         **(run.coverage.as_dict() if run.coverage is not None else {}),
+        "calibration": calibration_summary(run),
         "scale_err_median": median_after_skip(run.scale_err),
         "independent_scale_err_median": median_after_skip(run.independent_scale_err),
         "independent_claimed_outliers": own.outliers(), "independent_sigma_calibration": own.calibration(),
@@ -236,6 +237,26 @@ def chained_summary(run) -> dict:
         "independent_clips": [{"status": st, "scale_err": err, "scale_rel_sigma": sg} for st, err, sg in
                               zip(run.independent_status, run.independent_scale_err, run.independent_rel_sigma)],
     })
+
+
+def calibration_summary(run) -> dict | None:
+    """The rig's self-calibration in a chained run (``runner.OnlineRun``): the final estimate relative to the
+    configuration (mount rotation about the body axes, deg, and time offset, ms, each with its 1-sigma and whether it
+    replaced the configuration) and when each first did (s after the first clip); None without self-calibration."""
+    known = [(t, c) for t, c in zip(run.clip_t0, run.calibration) if c is not None]
+    if not known:
+        return None
+    final, t0 = known[-1][1], known[0][0]
+
+    def first(flag: str) -> float | None:
+        return next((float(t - t0) for t, c in known if getattr(c, flag)), None)
+
+    return {"rotation_deg": np.degrees(final.rotation).tolist(),
+            "rotation_sigma_deg": np.degrees(final.rotation_sigma).tolist(),
+            "time_offset_ms": 1e3 * final.time_offset, "time_offset_sigma_ms": 1e3 * final.time_offset_sigma,
+            "rotation_applied": final.rotation_applied, "offset_applied": final.offset_applied,
+            "rotation_applied_after_s": first("rotation_applied"), "offset_applied_after_s": first("offset_applied"),
+            "clips": final.clips}
 
 
 def pool_chained(named_runs: Sequence[tuple[str, object]]) -> dict:
@@ -284,6 +305,19 @@ def _coverage_line(chained: dict) -> str:
             + f"; scale links: {links['accepted']} used, {links['rejected']} refused, {links['none']} none")
 
 
+def _calibration_line(calibration: dict | None) -> str:
+    if calibration is None:
+        return "rig: as configured (self_calibration off)"
+    rot = " ".join(f"{a:+.2f}+-{s:.2f}" for a, s in zip(calibration["rotation_deg"], calibration["rotation_sigma_deg"]))
+
+    def when(key: str) -> str:
+        t = calibration[f"{key}_applied_after_s"]
+        return f"applied after {t:.1f} s" if t is not None else "not applied"
+
+    return (f"rig: mount rotation [{rot}] deg ({when('rotation')}), time offset {calibration['time_offset_ms']:+.2f}+-"
+            f"{calibration['time_offset_sigma_ms']:.2f} ms ({when('offset')}), relative to the configuration")
+
+
 def format_chained(chained: dict, summary: dict) -> str:
     """The chained trajectory's metrics (per segment when there are several), the per-clip scale errors and the
     claims of the chained clips (``summary``: their ``summarise``) beside those of the clips' own initialisation."""
@@ -291,7 +325,8 @@ def format_chained(chained: dict, summary: dict) -> str:
     scales = _one_row(chained, ("scale_err_median", "independent_scale_err_median", "resets"))
     claims = "\n".join([_claims_line("chained:", summary["claimed_outliers"], summary["sigma_calibration"]),
                         _claims_line("own init:", chained["independent_claimed_outliers"],
-                                     chained["independent_sigma_calibration"]), _coverage_line(chained)])
+                                     chained["independent_sigma_calibration"]), _coverage_line(chained),
+                         _calibration_line(chained.get("calibration"))])
     if not chained["applicable"]:
         return f"{title}: {chained['reason']}\n{scales}\n{claims}"
     traj = _one_row(chained, ("ate_m", "drift_pct", "gravity_err_deg", "distance_m", "frames", "segments"))

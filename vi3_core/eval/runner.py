@@ -31,6 +31,7 @@ from vi3_core.eval.coverage import Coverage, coverage, motion_start
 from vi3_core.init import InitOptions
 from vi3_core.init.oracle import gt_init_state
 from vi3_core.online import OnlineDecision, OnlineOptions, StreamEstimator, StreamOptions
+from vi3_core.online.calibration import CalibrationOptions, RigEstimate
 from vi3_core.online.stream import INIT_SOURCES
 from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Clip, Geometry
 
@@ -56,7 +57,7 @@ class EvalOptions:
     clips: "paper" (start / middle / end) or "sliding" (every ``hop`` frames); clip_length, stride, hop: frames per
         clip, frame stride and frames between sliding clips (None: back to back), as the node's parameters of the same
         names; max_clips: keep at most this many clips (evenly spread), None for all.
-    anchor_options, init_options, online_options: the stream's settings (None: the defaults).
+    anchor_options, init_options, online_options, calibration_options: the stream's settings (None: the defaults).
     """
 
     mode: str = "init"
@@ -69,6 +70,7 @@ class EvalOptions:
     anchor_options: AnchorOptions | None = None
     init_options: InitOptions | None = None
     online_options: OnlineOptions | None = None
+    calibration_options: CalibrationOptions | None = None
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -81,7 +83,8 @@ class EvalOptions:
         """The stream estimator these options describe (``online``: chained, else every clip on its own)."""
         return StreamEstimator(backbone, options=StreamOptions(online=online, mode=self.mode,
                                                                init_source=self.init_source),
-                               online=self.online_options, init=self.init_options, anchor=self.anchor_options)
+                               online=self.online_options, init=self.init_options, anchor=self.anchor_options,
+                               calibration=self.calibration_options)
 
 
 def _column_metrics(geometry: Geometry, T_gt: np.ndarray, depth_gt: np.ndarray | None) -> metrics.GeometryMetrics:
@@ -113,7 +116,8 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
     return ClipEval(indices=np.arange(clip.n) if indices is None else np.asarray(indices), stamps=clip.stamps,
                     status=init.status.value, reason=init.reason, mode=outcome.mode, T_gt=T_gt, down_c1=down_c1,
                     init=init, result=result, fast=outcome.fast, columns=columns,
-                    init_metrics=metrics.init_metrics(init, clip.gt), decision=outcome.decision)
+                    init_metrics=metrics.init_metrics(init, clip.gt), decision=outcome.decision,
+                    calibration=outcome.calibration)
 
 
 def evaluate_frames(seq: Sequence, idx: np.ndarray, backbone: Backbone, *, options: EvalOptions) -> ClipEval:
@@ -207,7 +211,8 @@ class OnlineRun:
     (NaN: no value); independent_status, independent_scale_err, independent_rel_sigma [n_clips]: each clip's own
     GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale sigma;
     metrics: None when the trajectory cannot be scored, ``reason`` then says why; coverage: how soon and how often
-    the run claimed in flight, and its scale links (``vi3_core.eval.coverage``)."""
+    the run claimed in flight, and its scale links (``vi3_core.eval.coverage``); calibration: the rig's estimate after
+    each clip (None without self-calibration) and clip_t0 the first stamp of each clip, s."""
 
     stamps: np.ndarray
     T_OB: np.ndarray
@@ -222,6 +227,8 @@ class OnlineRun:
     metrics: ChainedMetrics | None = None
     reason: str = ""
     coverage: Coverage | None = None
+    calibration: list[RigEstimate | None] = field(default_factory=list)
+    clip_t0: list[float] = field(default_factory=list)
 
 
 def contiguity_gap(seq: Sequence, clips: list[np.ndarray], max_gap_s: float) -> str:
@@ -252,18 +259,21 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     clips = sampled if clips is None else clips
     stream = options.stream(backbone, online=True)
     max_bridge = stream.online_options.online_max_bridge
+    lead = (options.calibration_options or CalibrationOptions()).calib_prior_offset  # as the node's buffer waits
     evals: list[ClipEval] = []
     run = OnlineRun(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
     for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
         try:
             # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
-            clip = make_clip(seq, idx, history_s=max_bridge, with_images=backbone.needs_images)
+            clip = make_clip(seq, idx, history_s=max_bridge, lead_s=lead, with_images=backbone.needs_images)
             ev = evaluate_clip(clip, stream, indices=idx)
             if len(ev.stamps) != len(idx) or not np.array_equal(ev.stamps, seq.stamps[idx]):
                 ev.indices = np.searchsorted(seq.stamps, ev.stamps)
         except (Vi3Error, ValueError, OSError) as err:
             raise _stopped(seq, idx, err, evals, _finish(seq, stream, run, evals, clips)) from err
         run.decisions.append(ev.decision.describe())
+        run.calibration.append(ev.calibration)
+        run.clip_t0.append(float(ev.stamps[0]))
         if evals and ev.decision.reset:  # the first clip of the stream always starts the window
             run.resets += 1
         evals.append(ev)

@@ -8,29 +8,35 @@ Exp(-delta); a camera whose frame at t shows the body at IMU time t + td turns t
 Exp(-w_i td) R_ij Exp(w_j td) (w: the bias-corrected body rate at the two frames). To first order the pair residual
 r_ij = Log(R_ij^T M_ij) is then
 
-    r_ij = (I - R_ij^T) delta + (w_j - R_ij^T w_i) td - dT_ij dbg + noise,
+    r_ij = (I - R_ij^T) delta + (w_j - R_ij^T w_i) td - R_j^T (phi_j - phi_i) dbg + noise,
 
-linear in (delta, td) and in the clip's gyro-bias error dbg (a nuisance, eliminated per clip). A turn about an axis
-observes the mount's rotation about the axes across it, a change of rate the offset; hovering, or turning about one
-axis only, leaves the rest unobserved, and the estimate says so by its sigma. Each clip's information is added to the
-flight's (a linear Gaussian estimate with a random walk between clips, so a slowly changing rig is followed),
-linearised at the current estimate; a clip whose rotations the model does not explain (the residual's RMS above
-``max_rotation_error`` / 3 after its own fit: a backbone failure) is left out.
+linear in (delta, td) and in the clip's gyro-bias error dbg (phi_k: the preintegration's bias Jacobian of R_B1Bk; a
+nuisance, eliminated per clip). A turn about an axis observes the mount's rotation about the axes across it, a change
+of rate the offset; hovering, or turning about one axis only, leaves the rest unobserved, and the estimate says so by
+its sigma. The pairs share frames, so they are weighed by their covariance (``_pair_weights``), and each clip's noise
+is what its residuals show. Each clip's information is added to the flight's (a Gaussian estimate with a random walk
+between clips, so a slowly changing rig is followed) in an iterated update, the clip's residuals relinearised at the
+updated estimate (so that a configuration far off is not locked in by the first clips' linearisation); a clip whose
+rotations the model does not explain (the residual's RMS above ``max_rotation_error`` / 3 after its own fit: a
+backbone failure) is left out.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from vi3_core import so3
 from vi3_core.init.gyro_bias import _pair_indices, body_rotations
-from vi3_core.preintegration import frame_rotations, merged_grid
-from vi3_core.types import Clip, Geometry
+from vi3_core.preintegration import preintegrate
+from vi3_core.types import Clip, Geometry, ImuSamples
 
 MIN_ROTATION_NOISE_RAD = math.radians(0.02)  # no backbone's rotations are trusted as better than this per frame
+RELINEARISATIONS = 3  # Gauss-Newton steps of each clip's update: a first guess far off is not locked in
+RATE_HALF_WIDTH_S = 0.025  # s; the body rate at a frame is the gyro's mean over +-this (10 samples at 200 Hz)
 
 
 @dataclass(frozen=True)
@@ -38,22 +44,28 @@ class CalibrationOptions:
     """self_calibration: estimate the rig (false: the configured calibration, as given);
     calib_max_rotation_sigma: deg, the estimate of the mount's rotation replaces the configured one once its largest
         1-sigma is below this; calib_max_offset_sigma: s, the same for the time offset;
-    calib_prior_rotation: deg, calib_prior_offset: s, how far the configuration may be off (the estimate's prior);
-    calib_rotation_walk: deg/sqrt(s), calib_offset_walk: s/sqrt(s), how fast the rig may change in flight."""
+    calib_prior_rotation: deg, calib_prior_offset: s, how far the configuration may be off (the estimate's prior; the
+        node's clips also wait for calib_prior_offset s of IMU beyond their last frame, so an estimated offset of up
+        to that can be applied);
+    calib_rotation_walk: deg/sqrt(s), calib_offset_walk: s/sqrt(s), how fast the rig may change in flight;
+    calib_tolerance_rotation: deg, calib_tolerance_offset: s, how far the configuration may be off before the node
+        warns (``RigEstimate.off_by``: beyond this by three sigmas)."""
 
     self_calibration: bool = True
     calib_max_rotation_sigma: float = 0.3
     calib_max_offset_sigma: float = 0.002
     calib_prior_rotation: float = 10.0
-    calib_prior_offset: float = 0.05
+    calib_prior_offset: float = 0.03
     calib_rotation_walk: float = 0.01
     calib_offset_walk: float = 1e-4
+    calib_tolerance_rotation: float = 0.5
+    calib_tolerance_offset: float = 0.005
 
     def __post_init__(self) -> None:
         values = {k: v for k, v in vars(self).items() if k != "self_calibration"}
-        bad = [k for k, v in values.items() if not (math.isfinite(v) and v > 0)]
+        bad = [k for k, v in values.items() if not (math.isfinite(v) and (v >= 0 if "tolerance" in k else v > 0))]
         if bad:
-            raise ValueError(f"CalibrationOptions: {', '.join(bad)} must be finite and > 0")
+            raise ValueError(f"CalibrationOptions: {', '.join(bad)} must be finite and > 0 (tolerances >= 0)")
 
 
 @dataclass(frozen=True)
@@ -61,7 +73,8 @@ class RigEstimate:
     """The rig as the flight's rotations show it, relative to the configuration: rotation [3] rad, the mount's
     correction in the body frame (true R_BC = Exp(rotation) R_BC), time_offset s (a frame at camera time t shows the
     body at IMU time t + configured offset + time_offset); cov [4,4] their covariance; clips: how many were used;
-    rotation_applied / offset_applied: whether each replaces the configuration (its sigma passed its limit)."""
+    rotation_applied / offset_applied: whether each part replaces the configuration (self-calibration on and its sigma
+    below its limit in ``options``)."""
 
     rotation: np.ndarray
     time_offset: float
@@ -69,6 +82,7 @@ class RigEstimate:
     clips: int = 0
     rotation_applied: bool = False
     offset_applied: bool = False
+    options: CalibrationOptions = field(default_factory=CalibrationOptions)
 
     @property
     def rotation_sigma(self) -> np.ndarray:
@@ -79,16 +93,53 @@ class RigEstimate:
     def time_offset_sigma(self) -> float:
         return math.sqrt(max(float(self.cov[3, 3]), 0.0))
 
+    @property
+    def rotation_observed(self) -> np.ndarray:
+        """[3] bool: whether the mount's rotation about each body axis is known well enough to be applied."""
+        return self.rotation_sigma < math.radians(self.options.calib_max_rotation_sigma)
+
+    @property
+    def offset_observed(self) -> bool:
+        return self.time_offset_sigma < self.options.calib_max_offset_sigma
+
     def describe(self) -> str:
+        """One line: the estimate with its sigmas, whether each part is applied and, where not, about which body axes
+        the mount's rotation is not observed yet (the flight has not turned across them)."""
         deg, sd = np.degrees(self.rotation), np.degrees(self.rotation_sigma)
         rot = " ".join(f"{a:+.2f}+-{s:.2f}" for a, s in zip(deg, sd))
-        return (f"mount rotation [{rot}] deg ({'applied' if self.rotation_applied else 'configured'}), time offset "
-                f"{1e3 * self.time_offset:+.1f}+-{1e3 * self.time_offset_sigma:.1f} ms "
-                f"({'applied' if self.offset_applied else 'configured'}), {self.clips} clips")
+        unobserved = [axis for axis, seen in zip("xyz", self.rotation_observed) if not seen]
+        state = "applied" if self.rotation_applied else (
+            f"configured; unobserved about body {','.join(unobserved)}" if unobserved else "configured")
+        offset = "applied" if self.offset_applied else (
+            "configured" if self.offset_observed else "configured; unobserved")
+        return (f"mount rotation [{rot}] deg ({state}), time offset {1e3 * self.time_offset:+.1f}+-"
+                f"{1e3 * self.time_offset_sigma:.1f} ms ({offset}), {self.clips} clips")
+
+    def off_by(self) -> str:
+        """How the configuration is off where the estimate is sure it is off by more than its tolerance (by three
+        sigmas; ``options.calib_tolerance_*``), "" where it is not: the warning a flight stack's operator needs."""
+        o, parts = self.options, []
+        angle, sigma = float(np.linalg.norm(self.rotation)), float(self.rotation_sigma.max())
+        if angle - 3.0 * sigma > math.radians(o.calib_tolerance_rotation):
+            parts.append(f"the camera mount by {math.degrees(angle):.2f} deg (+-{math.degrees(sigma):.2f})")
+        sigma = self.time_offset_sigma
+        if abs(self.time_offset) - 3.0 * sigma > o.calib_tolerance_offset:
+            parts.append(f"the camera-IMU time offset by {1e3 * self.time_offset:+.1f} ms (+-{1e3 * sigma:.1f})")
+        return " and ".join(parts)
+
+    def for_clip(self, clip: Clip) -> RigEstimate:
+        """The estimate as it can be applied to ``clip``: the time offset only where the clip's IMU history covers its
+        frames moved by it (else the clip keeps its configured stamps)."""
+        if not self.offset_applied:
+            return self
+        stamps, history = clip.stamps + self.time_offset, clip.imu_history
+        if history is None or not len(history) or history.t[0] > stamps[0] or history.t[-1] < stamps[-1]:
+            return replace(self, offset_applied=False)
+        return self
 
     def apply(self, clip: Clip) -> Clip:
-        """``clip`` with the applied parts of the estimate: its mount turned, its stamps (IMU time) moved by the
-        time offset, its IMU cut again from its history for them (the clip as it is where that history is missing)."""
+        """``clip`` with the applied parts of the estimate (``for_clip`` says which it can take): its mount turned, its
+        stamps (IMU time) moved by the time offset and its IMU cut again from its history for them."""
         T_BC = clip.T_BC
         if self.rotation_applied:
             T_BC = T_BC.copy()
@@ -96,10 +147,49 @@ class RigEstimate:
         if not self.offset_applied:
             return replace(clip, T_BC=T_BC)
         stamps = clip.stamps + self.time_offset
-        history = clip.imu_history
-        if history is None or not len(history) or history.t[0] > stamps[0] or history.t[-1] < stamps[-1]:
-            return replace(clip, T_BC=T_BC)
-        return replace(clip, T_BC=T_BC, stamps=stamps, imu=history.window(float(stamps[0]), float(stamps[-1])))
+        return replace(clip, T_BC=T_BC, stamps=stamps, imu=clip.imu_history.window(float(stamps[0]), float(stamps[-1])))
+
+    def configured(self, clip: Clip) -> Clip:
+        """``clip`` (``apply``'s output) as configured: its mount and stamps back (its IMU as it is)."""
+        T_BC = clip.T_BC
+        if self.rotation_applied:
+            T_BC = T_BC.copy()
+            T_BC[:3, :3] = so3.exp(-self.rotation) @ clip.T_BC[:3, :3]
+        return replace(clip, T_BC=T_BC, stamps=clip.stamps - self.time_offset if self.offset_applied else clip.stamps)
+
+    def corrected(self, T_BC: np.ndarray, time_offset: float) -> tuple[np.ndarray, float]:
+        """The configured mount T_BC [4,4] and time offset (s, t_imu = t_cam + time_offset) corrected by the parts of
+        the estimate that are sure enough to be applied (the rest as configured): what the calibration file should
+        say."""
+        T = np.array(T_BC, np.float64, copy=True)
+        if self.rotation_applied:
+            T[:3, :3] = so3.exp(self.rotation) @ T[:3, :3]
+        return T, time_offset + (self.time_offset if self.offset_applied else 0.0)
+
+
+def frame_rates(imu: ImuSamples, stamps: np.ndarray, half_width: float = RATE_HALF_WIDTH_S) -> np.ndarray:
+    """[n,3] rad/s: the raw gyro averaged over +-half_width s around each stamp [n] (at least the nearest sample).
+    The offset's column of the pair residual is linear in these rates; a single sample's noise in it would bias the
+    offset towards zero and overstate its information (errors in variables), most where the body barely turns."""
+    t = imu.t
+    cs = np.concatenate([np.zeros((1, 3)), np.cumsum(imu.gyro, axis=0)])
+    lo = np.searchsorted(t, stamps - half_width, side="left")
+    hi = np.maximum(np.searchsorted(t, stamps + half_width, side="right"), lo + 1)
+    lo, hi = np.minimum(lo, len(t) - 1), np.minimum(hi, len(t))
+    return (cs[hi] - cs[lo]) / (hi - lo)[:, None]
+
+
+@functools.lru_cache(maxsize=8)
+def _pair_weights(n: int) -> np.ndarray:
+    """[P,P] the weights of the n frames' pair residuals (pairs as ``_pair_indices``): each frame's rotation error
+    enters every pair it is in, so the pairs' covariance is sigma^2 D D^T (D [P,n] the pairs' incidence: -1 at i,
+    +1 at j) and its pseudo-inverse weighs them (generalised least squares, n - 1 independent pairs' worth)."""
+    i, j = _pair_indices(n)
+    D = np.zeros((len(i), n))
+    D[np.arange(len(i)), i], D[np.arange(len(i)), j] = -1.0, 1.0
+    W = np.linalg.pinv(D @ D.T)
+    W.flags.writeable = False
+    return W
 
 
 class RigCalibrator:
@@ -118,12 +208,11 @@ class RigCalibrator:
 
     @property
     def estimate(self) -> RigEstimate:
-        cov = np.linalg.inv(self.info)
-        est = RigEstimate(self.x[:3].copy(), float(self.x[3]), cov, self.clips)
-        o = self.options
-        return replace(est, rotation_applied=bool(o.self_calibration and est.rotation_sigma.max()
-                                                   < math.radians(o.calib_max_rotation_sigma)),
-                       offset_applied=bool(o.self_calibration and est.time_offset_sigma < o.calib_max_offset_sigma))
+        est = RigEstimate(self.x[:3].copy(), float(self.x[3]), np.linalg.inv(self.info), self.clips,
+                          options=self.options)
+        on = self.options.self_calibration
+        return replace(est, rotation_applied=bool(on and est.rotation_observed.all()),
+                       offset_applied=bool(on and est.offset_observed))
 
     def add(self, clip: Clip, geometry: Geometry, bg: np.ndarray) -> str:
         """Take clip's rotations (``geometry``: its prediction, with the configured mount ``clip.T_BC`` and stamps in
@@ -135,28 +224,32 @@ class RigCalibrator:
             walk = np.diag([math.radians(o.calib_rotation_walk) ** 2] * 3 + [o.calib_offset_walk ** 2])
             self.info = np.linalg.inv(np.linalg.inv(self.info) + walk * (t - self.t_last))
         self.t_last = max(t, self.t_last or t)
-        got = self._clip_information(clip, geometry, bg)
-        if isinstance(got, str):
-            return got
-        info, step = got
-        self.x = np.linalg.solve(self.info + info, self.info @ self.x + info @ (self.x + step))
-        self.info = self.info + info
+        x = self.x
+        for _ in range(RELINEARISATIONS):  # Gauss-Newton on the prior and the clip (an iterated Kalman update)
+            got = self._clip_information(clip, geometry, bg, x)
+            if isinstance(got, str):
+                return got
+            info, step = got
+            x = np.linalg.solve(self.info + info, self.info @ self.x + info @ (x + step))
+        self.x, self.info = x, self.info + info
         self.clips += 1
         return ""
 
-    def _clip_information(self, clip: Clip, geometry: Geometry, bg: np.ndarray) -> tuple[np.ndarray, np.ndarray] | str:
-        """(information [4,4] of the clip about (delta, td) with its gyro-bias error eliminated, the step [4] from the
-        current estimate it points to), or why the clip says nothing."""
-        delta, td = self.x[:3], float(self.x[3])
+    def _clip_information(self, clip: Clip, geometry: Geometry, bg: np.ndarray,
+                          x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | str:
+        """(information [4,4] of the clip about (delta, td) with its gyro-bias error eliminated, the step [4] from
+        ``x`` [4] (where the residuals are linearised) that the clip alone points to), or why the clip says
+        nothing."""
+        delta, td = x[:3], float(x[3])
         T_BC = clip.T_BC.copy()
         T_BC[:3, :3] = so3.exp(delta) @ clip.T_BC[:3, :3]
         stamps = clip.stamps + td
         imu = clip.imu_history if clip.imu_history is not None else clip.imu
         if not len(imu) or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
             return "no IMU at the frames' times"
-        grid = merged_grid(imu.window(float(stamps[0]), float(stamps[-1])), stamps)
-        R = frame_rotations(grid, bg)
-        w = grid.gyro[grid.frame_idx] - bg  # body rates at the frames
+        pre = preintegrate(imu.window(float(stamps[0]), float(stamps[-1])), stamps, bg, jacobians=True)
+        R, phi = pre.R, pre.J.phi_bg  # R_B1Bk(bg + d) = Exp(phi_k d) R_B1Bk(bg)
+        w = frame_rates(imu, stamps) - bg
         M = body_rotations(geometry.T_wc[:, :3, :3], T_BC)
         i, j = _pair_indices(len(stamps))
         R_ij = np.swapaxes(R[i], 1, 2) @ R[j]
@@ -165,17 +258,20 @@ class RigCalibrator:
         R_ijT = np.swapaxes(R_ij, 1, 2)
         H[:, :, 0:3] = np.eye(3) - R_ijT
         H[:, :, 3] = w[j] - (R_ijT @ w[i][:, :, None])[:, :, 0]
-        H[:, :, 4:7] = -(stamps[j] - stamps[i])[:, None, None] * np.eye(3)
-        H, r = H.reshape(-1, 7), r.reshape(-1)
-        sol, *_ = np.linalg.lstsq(H, r, rcond=None)
-        dof = len(r) - 7
-        noise = math.sqrt(float(((r - H @ sol) ** 2).sum()) / max(dof, 1) / 2.0)  # per frame: a pair has two
+        H[:, :, 4:7] = -np.swapaxes(R[j], 1, 2) @ (phi[j] - phi[i])
+        W = _pair_weights(len(stamps))
+        info = np.einsum("pak,pq,qal->kl", H, W, H)
+        sol = np.linalg.lstsq(info, np.einsum("pak,pq,qa->k", H, W, r), rcond=None)[0]
+        res = r - H @ sol
+        dof = 3 * (len(stamps) - 1) - 7
+        if dof < 3:
+            return f"{len(stamps)} frames are too few to tell the rig from the clip's gyro bias"
+        noise = math.sqrt(float(np.einsum("pa,pq,qa->", res, W, res)) / dof)  # rad per frame and axis
         if noise > self.max_noise:
             return (f"rotations not explained by the rig ({math.degrees(noise):.2f} deg per frame after the fit): a "
                     "backbone failure")
-        # the pairs share frames: as many independent ones as intervals
-        var = 2.0 * max(noise, MIN_ROTATION_NOISE_RAD) ** 2 * (len(i) / (len(stamps) - 1))
-        info = H.T @ H / var
+        # the noise is estimated from the clip itself: its information is worth dof / (dof - 2) less on average
+        info = info / (max(noise, MIN_ROTATION_NOISE_RAD) ** 2 * dof / (dof - 2))
         keep, drop = slice(0, 4), slice(4, 7)
         info_m = info[keep, keep] - info[keep, drop] @ np.linalg.pinv(info[drop, drop]) @ info[drop, keep]
         return 0.5 * (info_m + info_m.T), sol[:4]

@@ -67,8 +67,14 @@ class SharedFrames:
         return len(self.stamps)
 
     def starts(self, clip: Clip) -> bool:
-        """Whether ``clip`` starts with these frames."""
-        return clip.n > len(self) and np.array_equal(clip.stamps[:len(self)], self.stamps)
+        """Whether ``clip`` starts with these frames (the same header stamps where both have them: the IMU-time
+        stamps move with the rig's estimated time offset)."""
+        k = len(self)
+        if clip.n <= k:
+            return False
+        if self.stamps_ns is not None and clip.stamps_ns is not None:
+            return np.array_equal(clip.stamps_ns[:k], self.stamps_ns)
+        return np.array_equal(clip.stamps[:k], self.stamps)
 
     def into(self, clip: Clip) -> Clip | None:
         """``clip`` with these frames in place of its first ones, or None where that cannot be: frames of another size,

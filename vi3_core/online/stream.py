@@ -1,9 +1,10 @@
 """``StreamEstimator``: the one per-clip loop of a camera + IMU stream, shared by the node, replay and ``vi3 eval``.
 
-Per clip: with ``shared_frames``, the last frames of the clip before it in the window in place of its first ones when
-clips in between were dropped (``_compose``); the initialisation's data checks (a clip they reject costs no
-inference); the backbone and the anchoring mode (``vi3_core.anchor.anchor``) with the stream's initialisation; then
-the clip's place in the odom trajectory.
+Per clip: the rig's self-calibration where its sigma allows (``RigEstimate.apply``: the camera mount turned, the
+frames' stamps moved by the time offset); with ``shared_frames``, the last frames of the clip before it in the window
+in place of its first ones when clips in between were dropped (``_compose``); the initialisation's data checks (a
+clip they reject costs no inference); the backbone and the anchoring mode (``vi3_core.anchor.anchor``) with the
+stream's initialisation; then the clip's place in the odom trajectory, and its rotations added to the rig's estimate.
 The initialisation is the online window's (``OnlineEstimator``: gravity, biases and velocity carried across clips,
 the clips chained into odom) with ``online``; every clip on its own as in the paper without it; or, for evaluation,
 the oracle from the clip's ground truth. ``process`` returns everything the clip changed as a ``ClipOutcome``.
@@ -14,9 +15,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
 from vi3_core.anchor import MODES, AnchorOptions, anchor, check_mode
 from vi3_core.backbones.base import Backbone
 from vi3_core.init import InitOptions, oracle_init, validate
+from vi3_core.online.calibration import CalibrationOptions, RigCalibrator, RigEstimate
 from vi3_core.online.chain import ChainedClip, Trajectory
 from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator
 from vi3_core.online.options import OnlineOptions
@@ -48,13 +52,16 @@ class StreamOptions:
 class ClipOutcome:
     """What one clip changed.
 
-    clip: the clip as processed (with the shared frames in place of its first ones where ``_compose`` put them);
+    clip: the clip as processed (with the shared frames in place of its first ones where ``_compose`` put them, and
+    the applied parts of the rig's estimate: its mount turned, its stamps moved by the time offset);
     init: the clip's initialisation (the window's with ``online``), also when the backbone did not run; result: the
     final ``AnchorResult`` (None when the data checks rejected the clip before the backbone); fast: the init-mode
     result that ``cond``/``ttr`` refine (None in ``init`` mode or when the init is not ok); decision: the online
     window's decision, with the clip's own initialisation (None without ``online``); chained: the clip placed in odom
     (None unless it was chained); state: the odom state after the clip, where IMU-rate propagation starts (None
-    before the first chained clip); segment: the odom segment the trajectory is in (0: the first)."""
+    before the first chained clip); segment: the odom segment the trajectory is in (0: the first); calibration: the
+    rig's estimate after the clip (None without self-calibration); calibration_note: why the clip did not add to it
+    ("" when it did)."""
 
     clip: Clip
     init: InitResult
@@ -64,6 +71,8 @@ class ClipOutcome:
     chained: ChainedClip | None = None
     state: OdomState | None = None
     segment: int = 0
+    calibration: RigEstimate | None = None
+    calibration_note: str = ""
 
     @property
     def mode(self) -> str:
@@ -79,7 +88,7 @@ class StreamEstimator:
 
     def __init__(self, backbone: Backbone, *, options: StreamOptions | None = None,
                  online: OnlineOptions | None = None, init: InitOptions | None = None,
-                 anchor: AnchorOptions | None = None) -> None:
+                 anchor: AnchorOptions | None = None, calibration: CalibrationOptions | None = None) -> None:
         self.options = options or StreamOptions()
         check_mode(backbone, self.options.mode)  # an unsupported mode fails here, not once per clip
         self.backbone = backbone
@@ -88,6 +97,9 @@ class StreamEstimator:
         self.anchor_options = anchor or AnchorOptions()
         self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options) \
             if self.options.online else None
+        calibration = calibration or CalibrationOptions()
+        self.calibrator = RigCalibrator(calibration, max_rotation_error_deg=self.init_options.max_rotation_error) \
+            if self.options.online and calibration.self_calibration else None
 
     @property
     def trajectory(self) -> Trajectory:
@@ -106,15 +118,17 @@ class StreamEstimator:
         result when it is ok, before ``cond``/``ttr`` refine it (the node publishes it at once). ``before_backbone``
         is called once the clip passed the data checks; when it returns False the clip is abandoned (None: nothing
         changed). Bad data never raises: it is the outcome's ``init`` status."""
-        clip = self._compose(clip)
+        rig = self.calibrator.estimate.for_clip(clip) if self.calibrator is not None else None
+        clip = self._compose(rig.apply(clip) if rig is not None else clip)
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
         if reason is not None:
             init = InitResult(InitStatus.REJECTED, reason)
             decision = OnlineDecision(rejected={"clip": reason}, own=init) if self.window is not None else None
-            return ClipOutcome(clip, init, decision=decision, state=self._state(), segment=self._segment())
+            return ClipOutcome(clip, init, decision=decision, state=self._state(), segment=self._segment(),
+                               calibration=rig)
         if before_backbone is not None and not before_backbone():
             return None
-        self.backbone.bind(clip)
+        self.backbone.bind(rig.configured(clip) if rig is not None else clip)
         fast: list[AnchorResult] = []
 
         def take_fast(result: AnchorResult) -> None:
@@ -127,8 +141,14 @@ class StreamEstimator:
                         init_options=self.init_options, init=self._initialiser(clip), on_init=take_fast)
         window = self.window
         chained = window.update(clip, result) if window is not None else None
+        note = ""
+        if self.calibrator is not None:  # the rotations as configured, whatever became of the clip
+            bg = result.init.bg if np.all(np.isfinite(result.init.bg)) else np.zeros(3)
+            note = self.calibrator.add(rig.configured(clip), result.base, bg)
+            rig = self.calibrator.estimate
         return ClipOutcome(clip, result.init, result, fast[0] if fast else None,
-                           window.last if window is not None else None, chained, self._state(), self._segment())
+                           window.last if window is not None else None, chained, self._state(), self._segment(),
+                           rig, note)
 
     def _compose(self, clip: Clip) -> Clip:
         """``clip``, or with the window's shared frames in place of its first ones when it does not start with them

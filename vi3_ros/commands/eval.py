@@ -59,6 +59,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gt-seed", type=int, default=0, metavar="N",
                    help="with --backbone gt: seed of the noise (each clip's noise is drawn from N and its first "
                         "stamp, so a run is repeatable); default 0")
+    p.add_argument("--calib-error", default=None, metavar="RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS]",
+                   help="evaluate with a wrong rig calibration, as a user's own file may be: the camera mount the "
+                        "estimator is given is the true one turned back by (RX, RY, RZ) deg about the body axes, and "
+                        "the IMU stamps are IMU_DELAY_MS late (the images, the gt instrument and the ground truth "
+                        "keep the truth); measures the self-calibration")
     p.add_argument("--checkpoint", default=None, help="backbone checkpoint path (real 3DFMs)")
     p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     p.add_argument("--mode", choices=MODES, default=None,
@@ -137,13 +142,16 @@ def _opener(args: argparse.Namespace, *, absolute: bool = False) -> functools.pa
     """A function that opens an input path with the run's calibration and topics (it pickles, for Ray workers;
     ``absolute``: with the calibration's absolute path, for workers in another folder)."""
     calib = os.path.abspath(args.calib) if absolute and args.calib else args.calib
-    return functools.partial(_open_path, calib=calib, image_topic=args.image_topic, imu_topic=args.imu_topic)
+    return functools.partial(_open_path, calib=calib, image_topic=args.image_topic, imu_topic=args.imu_topic,
+                             calib_error=args.calib_error)
 
 
-def _open_path(path: str, **kwargs):
+def _open_path(path: str, *, calib_error: str | None = None, **kwargs):
+    from vi3_core.eval.perturb import RigError
     from vi3_ros.io.reader import open_sequence
 
-    return open_sequence(path, **kwargs)
+    seq = open_sequence(path, **kwargs)
+    return RigError.parse(calib_error).apply(seq) if calib_error else seq
 
 
 def unique_names(names: list[str], reserved: tuple[str, ...] = RESERVED_NAMES) -> list[str]:
@@ -259,10 +267,13 @@ def _backbone(args: argparse.Namespace):
 
     if args.backbone == "gt":
         from vi3_core.backbones.ground_truth import GroundTruthPoses
+        from vi3_core.eval.perturb import RigError
         from vi3_core.sim.visual import DepthNoise, PoseNoise
 
+        mount_error = RigError.parse(args.calib_error).rotation if args.calib_error else None
         return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"),
-                                 depth_noise=DepthNoise.parse(args.gt_depth_noise or "0"), seed=args.gt_seed)
+                                 depth_noise=DepthNoise.parse(args.gt_depth_noise or "0"), seed=args.gt_seed,
+                                 mount_error=mount_error)
     if args.gt_noise is not None or args.gt_depth_noise is not None or args.gt_seed:
         raise ValueError("--gt-noise, --gt-depth-noise and --gt-seed need --backbone gt (the ground-truth pose "
                          "instrument)")
@@ -286,7 +297,8 @@ def _prepare(args: argparse.Namespace) -> tuple:
     options = runner.EvalOptions(
         mode=settings.stream.mode, init_source=args.init_source, clips=clips, clip_length=buf.clip_length,
         stride=buf.stride, hop=buf.hop, max_clips=args.max_clips, progress=not args.no_progress,
-        anchor_options=settings.anchor, init_options=settings.init, online_options=settings.online)
+        anchor_options=settings.anchor, init_options=settings.init, online_options=settings.online,
+        calibration_options=settings.calibration)
     check_outputs(args)
     runs, problems = [], []
     keep = len(args.input) == 1 and args.ray is None

@@ -1,0 +1,50 @@
+"""A wrong rig calibration on purpose (``vi3 eval --calib-error``): what a user's own camera mount and clocks give when
+the calibration file is off, for measuring the self-calibration (``vi3_core.online.calibration``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vi3_core import so3
+from vi3_core.dataset.sequence import Sequence
+
+
+@dataclass(frozen=True)
+class RigError:
+    """rotation_deg [3]: the true mount is the configured one turned by Exp(rotation) about the body axes (the
+    configuration is off by that); imu_delay_s: the IMU's stamps are this late against the camera's."""
+
+    rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    imu_delay_s: float = 0.0
+
+    @staticmethod
+    def parse(text: str) -> RigError:
+        """"RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS]" -> RigError; ValueError naming the text."""
+        try:
+            values = [float(x) for x in text.split(",")]
+            if len(values) not in (3, 4) or not all(math.isfinite(v) for v in values):
+                raise ValueError
+        except ValueError:
+            raise ValueError(f"calibration error {text!r}: expected RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS], finite "
+                             "(e.g. 3,0,0,20)") from None
+        return RigError(tuple(values[:3]), values[3] * 1e-3 if len(values) == 4 else 0.0)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """[3] rad."""
+        return np.radians(np.asarray(self.rotation_deg, np.float64))
+
+    def apply(self, seq: Sequence) -> Sequence:
+        """``seq`` as a user with this error sees it: its calibration's mount turned back by the rotation (the truth is
+        the file's), its IMU stamps delayed; images and ground truth as recorded."""
+        T_BC = seq.calib.T_BC.copy()
+        T_BC[:3, :3] = so3.exp(-self.rotation) @ T_BC[:3, :3]
+        imu = dataclasses.replace(seq.imu, t=seq.imu.t + self.imu_delay_s)
+        return dataclasses.replace(seq, calib=dataclasses.replace(seq.calib, T_BC=T_BC), imu=imu)
+
+
+__all__ = ["RigError"]
