@@ -140,6 +140,20 @@ class EvaluationStopped(Vi3Error):
         self.evals, self.online = evals, online
 
 
+class EvaluationInterrupted(KeyboardInterrupt):
+    """An evaluation stopped by Ctrl-C (or a signal raised as KeyboardInterrupt) part-way: ``evals`` (and ``online``)
+    as ``EvaluationStopped``."""
+
+    def __init__(self, evals: list[ClipEval], online: OnlineRun | None = None) -> None:
+        super().__init__(f"interrupted after {len(evals)} clips")
+        self.evals, self.online = evals, online
+
+
+def interrupted_note(done: int, total: int) -> str:
+    """The error of a sequence whose evaluation was interrupted (serial and Ray runs alike)."""
+    return f"interrupted: {done} of {total} clips evaluated"
+
+
 def check_sequence(seq: Sequence, *, options: EvalOptions) -> list[np.ndarray]:
     """The clips ``evaluate_sequence`` / ``evaluate_online`` would evaluate; raises DataError when ``seq`` cannot be
     evaluated (no ground truth, no calibration, too short), before any clip is."""
@@ -158,15 +172,19 @@ def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEva
 
 def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None) -> list[ClipEval]:
     """Evaluate every sampled clip of ``seq`` (which must have ground truth), with a progress bar over clips.
-    A clip that fails raises ``EvaluationStopped`` with the clips evaluated before it."""
+    A clip that fails raises ``EvaluationStopped`` with the clips evaluated before it, an interruption
+    ``EvaluationInterrupted``."""
     options = options or EvalOptions()
     out = []
-    for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
-                    disable=not options.progress):
-        try:
-            out.append(evaluate_frames(seq, idx, backbone, options=options))
-        except (Vi3Error, ValueError, OSError) as err:
-            raise _stopped(seq, idx, err, out) from err
+    try:
+        for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
+                        disable=not options.progress):
+            try:
+                out.append(evaluate_frames(seq, idx, backbone, options=options))
+            except (Vi3Error, ValueError, OSError) as err:
+                raise _stopped(seq, idx, err, out) from err
+    except KeyboardInterrupt:
+        raise EvaluationInterrupted(out) from None
     return out
 
 
@@ -232,7 +250,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     segment. Clips that are not contiguous are still evaluated one by one, but their trajectory is not scored
     (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap in the images);
     ``on_clip(k)`` is called after the k-th clip is evaluated (progress beside the bar). A clip that fails raises
-    ``EvaluationStopped`` with what was computed before it."""
+    ``EvaluationStopped`` with what was computed before it, an interruption ``EvaluationInterrupted``."""
     options = options or EvalOptions()
     if options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
@@ -241,23 +259,26 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     est = OnlineEstimator(options=online_options, init_options=options.init_options)
     evals, free = [], []
     run = OnlineRun(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
-    for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
-        try:
-            # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
-            clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=backbone.needs_images)
-            ev = evaluate_clip(clip, backbone, options=options, indices=idx,
-                               init=lambda base, clip=clip: est.initialise(clip, base))
-            est.update(clip, ev.result)
-        except (Vi3Error, ValueError, OSError) as err:
-            raise _stopped(seq, idx, err, evals, _finish(seq, est, run, evals, free, clips)) from err
-        run.decisions.append(est.last.describe())
-        if evals and est.last.reset:  # the first clip of the stream always starts the window
-            run.resets += 1
-        evals.append(ev)
-        diag = ev.result.init.diagnostics
-        free.append((diag["free_status"], diag["free_scale"], diag.get("free_scale_sigma", np.nan)))
-        if on_clip is not None:
-            on_clip(len(evals))
+    try:
+        for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
+            try:
+                # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
+                clip = make_clip(seq, idx, history_s=est.options.max_bridge_s, with_images=backbone.needs_images)
+                ev = evaluate_clip(clip, backbone, options=options, indices=idx,
+                                   init=lambda base, clip=clip: est.initialise(clip, base))
+                est.update(clip, ev.result)
+            except (Vi3Error, ValueError, OSError) as err:
+                raise _stopped(seq, idx, err, evals, _finish(seq, est, run, evals, free, clips)) from err
+            diag = ev.result.init.diagnostics
+            run.decisions.append(est.last.describe())
+            run.resets += bool(evals and est.last.reset)  # the first clip of the stream always starts the window
+            free.append((diag["free_status"], diag["free_scale"], diag.get("free_scale_sigma", np.nan)))
+            evals.append(ev)
+            if on_clip is not None:
+                on_clip(len(evals))
+    except KeyboardInterrupt:  # the clips recorded whole (a signal between the appends above drops that clip)
+        del run.decisions[len(evals):], free[len(evals):]
+        raise EvaluationInterrupted(evals, _finish(seq, est, run, evals, free, clips)) from None
     return evals, _finish(seq, est, run, evals, free, clips)
 
 
