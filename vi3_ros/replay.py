@@ -167,6 +167,7 @@ class McapSink:
 
     @contextmanager
     def _writing(self) -> Iterator[None]:
+        """An OSError of the bag writer (a full disk, a file too large) as a DataError naming the output."""
         try:
             yield
         except OSError as err:

@@ -8,8 +8,8 @@ seconds of the replay (all threads; reading, decoding and writing included) / cl
 other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``) when the replays
 end, before the ground truth is read and their odometry read back and scored (which holds every ``~/odom/imu``
 message); it must not grow with the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry
-(``imu_odom_rate``), so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out). ``threads`` and ``omp_wait_policy``:
-the torch settings the replay ran with (parameter ``threads``).
+(``imu_odom_rate``), so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out). ``threads`` and
+``omp_wait_policy``: the torch settings the replay ran with (parameter ``threads``).
 
 ``--realtime`` replays at the recorded rate into the node's worker thread, ``--backbone-delay S`` emulates a slower
 model: the clips the busy worker drops show in ``outcomes`` (``skipped:worker_busy``). With ground truth (the

@@ -7,8 +7,8 @@ companion (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``). With
 reported, then the clips of all of them pooled (the paper's medians over clips); the JSON object is then
 {"sequences": [...], "pooled": {...}} and plots / TUM files get the sequence name (unique within the run).
 
-Every input and output path is checked before any clip is evaluated (an output that is, lies inside or contains an
-input is refused). A failure after that (a clip that cannot be read, an output that cannot be written) still writes
+Every input and output path is checked before any clip is evaluated (an output file that is an input, under any
+name, is refused). A failure after that (a clip that cannot be read, an output that cannot be written) still writes
 what was computed, marked ``"partial": true`` with the errors, and exits with status 2. Ctrl-C or SIGTERM stops the
 run and writes what had finished the same way, marked partial, with exit status 130 / 143 (128 + the signal).
 
@@ -183,7 +183,7 @@ def check_outputs(args: argparse.Namespace) -> None:
 def output_paths(args: argparse.Namespace, names: list[str]) -> dict:
     """Where each output of the run goes: {"plots": {name: png}, "sigma": png or None, "tum": {name: dir},
     "json": file or None}; raises OSError when one is not writable or two outputs would be the same path, DataError
-    when one is, lies inside or contains an input."""
+    when one is an input."""
     from vi3_core.eval.plot import sigma_plot_path
     from vi3_core.paths import check_apart
 
