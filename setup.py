@@ -32,6 +32,7 @@ setup(
         "tqdm>=4.60",
         "threadpoolctl>=3.1",
         "pyyaml>=6.0",
+        "simplejpeg>=1.7",
     ],
     extras_require={
         # vi3 eval --ray: evaluation on a Ray cluster (vi3_core.eval.distributed); in the test extra so the suite

@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
+import simplejpeg
 
 from msg_adapters.errors import MalformedMessage, UnsupportedEncoding
 from msg_adapters.fields import str_field, uint8_buffer, uint_field
@@ -40,6 +41,7 @@ ENCODINGS: dict[str, _Layout] = {
 }
 
 _HOST_BIG_ENDIAN = sys.byteorder == "big"
+JPEG_SOI = b"\xff\xd8"  # the first two bytes of every JPEG file (start of image)
 
 
 def _layout(encoding: Any) -> _Layout:
@@ -82,7 +84,9 @@ def image_to_numpy(msg: Any) -> np.ndarray:
 def compressed_to_numpy(msg: Any) -> np.ndarray:
     """``sensor_msgs/CompressedImage`` (jpeg or png) -> [H,W] or [H,W,C] array, RGB(A) order.
 
-    uint8, or uint16 for 16-bit PNG. ``compressedDepth`` (a header before the PNG) is not supported.
+    uint8, or uint16 for 16-bit PNG. ``compressedDepth`` (a header before the PNG) is not supported. A JPEG (told by
+    its first bytes) is decoded strictly (``decode_jpeg``): one the decoder finds truncated or corrupt is malformed,
+    even where a lenient decoder would fill the rest in grey.
     """
     fmt = str_field(msg.format, "format")
     low = fmt.lower()
@@ -91,6 +95,8 @@ def compressed_to_numpy(msg: Any) -> np.ndarray:
     data = uint8_buffer(msg.data, "data")
     if data.size == 0:
         raise MalformedMessage(f"data is empty for format {fmt!r}")
+    if data[:2].tobytes() == JPEG_SOI:
+        return decode_jpeg(data)
     try:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:
@@ -100,6 +106,18 @@ def compressed_to_numpy(msg: Any) -> np.ndarray:
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
     return img
+
+
+def decode_jpeg(data: np.ndarray) -> np.ndarray:
+    """JPEG bytes [N] uint8 -> [H,W] (one channel) or [H,W,3] RGB uint8, by libjpeg-turbo (``simplejpeg``) in strict
+    mode: every warning of the decoder (truncated file, corrupt data, ...) is a MalformedMessage quoting it."""
+    buf = data.tobytes()
+    try:
+        channels = simplejpeg.decode_jpeg_header(buf)[2]
+        img = simplejpeg.decode_jpeg(buf, colorspace="GRAY" if channels == "Gray" else "RGB", strict=True)
+    except ValueError as exc:
+        raise MalformedMessage(f"data ({data.size} bytes) is not a sound JPEG: the decoder says {exc}") from exc
+    return img[..., 0] if img.shape[2] == 1 else img
 
 
 def camera_frame(msg: Any) -> np.ndarray:

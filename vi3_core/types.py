@@ -68,6 +68,10 @@ class ImuSamples:
         ``window_bounds``."""
         return self.select(slice(*window_bounds(self.t, t0, t1, margin)))
 
+    def shifted(self, dt: float) -> ImuSamples:
+        """The samples with their stamps moved by ``dt`` s (onto another clock)."""
+        return ImuSamples(self.t + dt, self.gyro, self.accel, self.orientation)
+
     def select(self, idx) -> ImuSamples:
         """Rows ``idx`` (slice, index array or boolean mask)."""
         ori = None if self.orientation is None else self.orientation[idx]

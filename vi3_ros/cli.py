@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
+import sys
 
 from vi3_ros import interrupts
 
-SUBCOMMANDS = ("bench", "demo", "replay", "eval", "make_bag")
+SUBCOMMANDS = ("bench", "demo", "replay", "eval", "calib", "make_bag")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,16 +22,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; a signal while it runs ends it with 128 + the signal's number, after it unwound (a command
+    that writes an output reports what it kept; any other says it was interrupted)."""
     args = build_parser().parse_args(argv)
     interrupts.set_phase(interrupts.RUNNING)
     try:
-        return int(args.func(args) or 0)
+        with interrupts.trapped() as trap:
+            try:
+                return int(args.func(args) or 0)
+            except (KeyboardInterrupt, ImportError) as exc:
+                # a signal while an extension module initialises surfaces as an ImportError raised from it
+                if isinstance(exc, ImportError) and not isinstance(exc.__cause__, KeyboardInterrupt):
+                    raise
+                print(f"vi3 {args.command}: interrupted by {trap.name or 'SIGINT'}", file=sys.stderr)
+                return trap.status if trap.signum is not None else 128 + signal.SIGINT
     finally:
         interrupts.set_phase(interrupts.FINISHED)
 
 
 def program() -> None:
-    """The ``vi3`` program: SIGTERM ends it with status 143 at any moment (``vi3_ros.interrupts``)."""
+    """The ``vi3`` program: SIGINT and SIGTERM end it with status 130 / 143 at any moment, without a traceback
+    (``vi3_ros.interrupts``)."""
     interrupts.exit_on_signal()
     interrupts.end(main())
 

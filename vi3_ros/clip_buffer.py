@@ -44,8 +44,7 @@ class ClipBufferOptions:
     t_cam + time_offset; imu_margin: IMU samples needed beyond the last frame; imu_buffer: bounded IMU buffer
     (samples); imu_timeout: s of camera time a complete clip waits for IMU before it is dropped; imu_history: s of IMU
     kept before the clip's first frame in ``RawClip.imu_history`` (long-window gravity seed; 0 = none), which also
-    reaches imu_lead s beyond its last frame (a clip waits for those, so that an estimated time offset of up to
-    imu_lead can be applied to it); max_pending: complete clips waiting for IMU."""
+    reaches ``ClipBuffer.imu_lead`` s beyond its last frame; max_pending: complete clips waiting for IMU."""
 
     clip_length: int = CLIP_LENGTH
     stride: int = CLIP_STRIDE
@@ -53,7 +52,6 @@ class ClipBufferOptions:
     max_frame_gap: float = 0.0
     time_offset: float = 0.0
     imu_margin: int = 1
-    imu_lead: float = 0.0
     imu_buffer: int = 4000
     imu_timeout: float = 0.5
     imu_history: float = 0.0
@@ -163,7 +161,9 @@ class ClipBuffer:
     """Collects frames and IMU samples; ``add_image``/``add_imu`` return the clips and drops they caused.
 
     Deterministic: the output depends only on the order and stamps of the inputs, never on wall-clock time.
-    ``counts`` tallies drops by reason and ``clips`` the emitted clips.
+    ``counts`` tallies drops by reason and ``clips`` the emitted clips. ``imu_lead``: s of IMU a complete clip waits for
+    beyond its last frame (in its history), so that the rig's estimated time offset can be applied to it
+    (``StreamEstimator.imu_lead``, set by the pipeline after each clip).
     """
 
     def __init__(self, options: ClipBufferOptions | None = None) -> None:
@@ -178,6 +178,7 @@ class ClipBuffer:
         self._intervals: collections.deque[float] = collections.deque(maxlen=16)
         self._next_index = 0
         self.counts: collections.Counter[str] = collections.Counter()
+        self.imu_lead = 0.0
         self.clips = 0
 
     # ---- inputs ---------------------------------------------------------------------------------------------
@@ -299,7 +300,7 @@ class ClipBuffer:
         out: list[RawClip | Drop] = []
         m = self.options.imu_margin
         t = self._imu.t
-        lead = self.options.imu_lead
+        lead = self.imu_lead
         while self._pending and len(t) >= m and t[-m] > self._pending[0].stamps[-1] + lead:
             clip = self._pending.popleft()
             t0, t1 = float(clip.stamps[0]), float(clip.stamps[-1])

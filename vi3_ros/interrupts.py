@@ -1,19 +1,20 @@
-"""SIGTERM and SIGINT for the ``vi3`` commands: SIGTERM at any moment ends the program with status 143 (128 + 15),
-never by the signal's default action; a command that writes an output (``vi3 replay``) traps SIGTERM and SIGINT so
-that it ends with 128 + the signal number keeping a complete output, a partial one named as such, or nothing.
+"""SIGINT and SIGTERM for the ``vi3`` commands: a signal at any moment ends the program with status 128 + its number
+(130 SIGINT, 143 SIGTERM), never by the signal's default action and never with a traceback; a command that writes an
+output traps them so that it ends keeping a complete output, a partial one named as such, or nothing.
 
-- ``exit_on_signal()``, the program's first step, makes SIGTERM end the process at once (saying so on stderr) while no
-  command traps it: before a command starts (nothing was written) and after it finished (its outputs are final and
-  reported). ``end(status)`` ends the program after its exit functions, skipping the interpreter's teardown of
-  modules, where Python restores SIGTERM's default action (a signal there would kill the process, status -15).
-- Inside ``trapped()`` (a command that writes an output), the first signal raises KeyboardInterrupt in the main
-  thread, so that the command unwinds and keeps or removes what it wrote; later signals are only recorded, so that
-  this cleanup is never cut short.
+- ``exit_on_signal()``, the program's first step, makes SIGINT and SIGTERM end the process at once (saying so on
+  stderr) while no command traps them: before a command starts (nothing was written) and after it finished (its
+  outputs are final and reported), exit functions included. ``end(status)`` ends the program after its exit
+  functions, skipping the interpreter's teardown of modules, where Python restores the signals' default actions.
+- Inside ``trapped()`` (around every command; nested inside it by a command that writes an output), the first
+  signal raises KeyboardInterrupt in the main thread, so that the command unwinds and keeps or removes what it
+  wrote; later signals are only recorded, so that this cleanup is never cut short.
 - Between ``hold()`` and ``release()`` (an output being created or moved into place, a decision about what is kept)
-  a signal is only recorded; ``release()`` raises it. The command reads ``Trap.signum`` to report it afterwards.
+  and inside ``held()`` a signal is only recorded; ``release()`` raises it. The command reads ``Trap.signum`` to
+  report it afterwards.
 
-Outside ``trapped()`` (library use, tests) ``hold`` and ``release`` do nothing. ``vi3_node`` traps SIGINT and SIGTERM
-the same way around its whole life, so that its shutdown is never cut short by a second signal.
+Outside ``trapped()`` (library use, tests) ``hold``, ``release`` and ``held`` do nothing. ``vi3_node`` traps SIGINT
+and SIGTERM the same way around its whole life, so that its shutdown is never cut short by a second signal.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import atexit
 import os
 import signal
 import sys
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -31,11 +33,12 @@ from typing import NoReturn
 @dataclass
 class Trap:
     """signum: the first signal received (None: none yet); held: signals are only recorded; raised: the
-    KeyboardInterrupt of the first signal has been raised."""
+    KeyboardInterrupt of the first signal has been raised; signums: the signals trapped."""
 
     signum: int | None = None
     held: bool = False
     raised: bool = False
+    signums: tuple[int, ...] = ()
 
     @property
     def name(self) -> str:
@@ -80,9 +83,16 @@ def _exit_now(signum: int) -> None:
     os._exit(128 + signum)
 
 
+def _default_signums() -> tuple[int, ...]:
+    """SIGTERM, and SIGINT unless it is ignored (as under nohup)."""
+    return (signal.SIGTERM,) + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN else ())
+
+
 def exit_on_signal() -> None:
-    """The program's first step: SIGTERM outside a command ends the process with status 143 (see the module)."""
-    signal.signal(signal.SIGTERM, _on_signal)
+    """The program's first step: SIGINT or SIGTERM outside a command ends the process with status 128 + its number
+    (see the module)."""
+    for s in _default_signums():
+        signal.signal(s, _on_signal)
     atexit.register(_end)  # the first exit function registered runs last
 
 
@@ -109,30 +119,57 @@ def set_phase(phase: str) -> None:
 @contextmanager
 def trapped(signums: tuple[int, ...] | None = None) -> Iterator[Trap]:
     """``signums`` (default: SIGTERM, and SIGINT unless it is ignored, as under nohup) as described in the module,
-    for the block; the previous handlers after it. Main thread only (Python's rule for signal handlers)."""
+    for the block; the previous handlers (and trap, when nested) after it. Off the main thread (Python lets only it
+    set signal handlers) the trap is inert: no signal reaches it."""
     global _trap
-    if signums is None:
-        signums = (signal.SIGTERM,) + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
-                                       else ())
-    trap = Trap()
-    previous = {s: signal.getsignal(s) for s in signums}
-    _trap = trap
-    for s in signums:
-        signal.signal(s, _on_signal)
+    if threading.current_thread() is not threading.main_thread():
+        yield Trap(held=True)
+        return
+    trap = Trap(signums=signums if signums is not None else _default_signums())
+    previous = {s: signal.getsignal(s) for s in trap.signums}
+    outer, _trap = _trap, trap
+    reinstall()
     try:
         yield trap
     finally:
         trap.held = True  # the command is over: what it wrote is final
-        set_phase(FINISHED)
+        if outer is None:
+            set_phase(FINISHED)
         for s, handler in previous.items():
             signal.signal(s, handler)
-        _trap = None
+        _trap = outer
+
+
+def reinstall() -> None:
+    """The current trap's handlers again, after a library replaced them (``ray.init`` sets its own SIGTERM
+    handler, which exits with a traceback)."""
+    if _trap is not None:
+        for s in _trap.signums:
+            signal.signal(s, _on_signal)
 
 
 def hold() -> None:
     """From now on a signal is only recorded (see ``release``)."""
     if _trap is not None:
         _trap.held = True
+
+
+@contextmanager
+def held() -> Iterator[None]:
+    """A block that a signal does not cut short (e.g. the messages of one clip written together): a signal that
+    arrives meanwhile raises KeyboardInterrupt at its end. Nothing changes where signals are held already, outside
+    ``trapped()`` or off the main thread (where no signal is raised)."""
+    trap = _trap
+    if trap is None or trap.held or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    trap.held = True
+    try:
+        yield
+    except BaseException:
+        trap.held = False
+        raise
+    release()
 
 
 def release() -> None:

@@ -33,12 +33,14 @@ from msg_adapters.image import camera_frame
 from msg_adapters.imu import imu_to_sample
 from msg_adapters.stamps import stamp_to_ns
 from msg_adapters.types import MessageTypes
+from vi3_core.dataset.calib import load_calib
 from vi3_core.errors import DataError, Vi3Error
 from vi3_ros import interrupts
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
 from vi3_ros.outputs import OUTPUTS
 from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve
 from vi3_ros.pipeline import Pipeline, make_pipeline
+from vi3_ros.time_offset import resolve_time_offset
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -89,6 +91,10 @@ class Vi3Node(Node):
         for p in PARAMS:
             self.declare_parameter(p.name, p.default, descriptor(p))
         self.settings = resolve({p.name: self.get_parameter(p.name).value for p in PARAMS})
+        if self.settings.inputs.calib_file:  # its timeshift_cam_imu: time_offset unless the parameter says
+            self.settings, note = resolve_time_offset(self.settings, load_calib(self.settings.inputs.calib_file))
+            if note:
+                self.get_logger().warning(note)
         self.types = types = MessageTypes.from_rclpy()
         self.sink = _PublisherSink(self, types)
         self.pipeline: Pipeline = make_pipeline(self.settings, sink=self.sink, types=types)

@@ -152,8 +152,7 @@ PARAMS: tuple[Param, ...] = (
           "once its 1-sigma is below this", range=(1e-5, 0.1)),
     Param("calib_prior_rotation", CalibrationOptions, "deg; how far the configured mount rotation may be off",
           range=(0.01, 90.0)),
-    Param("calib_prior_offset", CalibrationOptions, "s; how far the configured time offset may be off (clips also "
-          "wait for this much IMU beyond their last frame, so that an estimate of up to it can be applied)",
+    Param("calib_prior_offset", CalibrationOptions, "s; how far the configured time offset may be off",
           range=(1e-4, 0.5)),
     Param("calib_rotation_walk", CalibrationOptions, "deg/sqrt(s); how fast the mount's rotation may change in flight "
           "(a random walk between clips)", range=(1e-6, 10.0)),

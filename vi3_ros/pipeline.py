@@ -64,9 +64,8 @@ MAX_IMU_RATE_HZ = 400.0
 def buffer_options(settings: Settings) -> ClipBufferOptions:
     """The clip buffer's options of ``settings``: with ``online``, the IMU history covers the bridge from the previous
     clip (up to ``online_max_bridge``), the bounded IMU buffer holds that history (at up to MAX_IMU_RATE_HZ) plus a
-    clip, without a ``hop`` clips start every (clip_length - shared_frames) * stride frames (each shares its first
-    frames with the one before), and with ``self_calibration`` a clip waits for ``calib_prior_offset`` s of IMU beyond
-    its last frame. Raises DataError when shared_frames leaves a clip no frame of its own."""
+    clip, and without a ``hop`` clips start every (clip_length - shared_frames) * stride frames (each shares its first
+    frames with the one before). Raises DataError when shared_frames leaves a clip no frame of its own."""
     opts = settings.buffer
     if not settings.stream.online:
         return opts
@@ -76,8 +75,7 @@ def buffer_options(settings: Settings) -> ClipBufferOptions:
     history = max(opts.imu_history, settings.online.online_max_bridge)
     span = history + (opts.clip_length - 1) * opts.stride * 0.2 + opts.imu_timeout + 1.0  # a clip at 5 Hz or faster
     hop = opts.hop if opts.hop is not None else (opts.clip_length - shared) * opts.stride
-    lead = settings.calibration.calib_prior_offset if settings.calibration.self_calibration else opts.imu_lead
-    return dataclasses.replace(opts, imu_history=history, hop=hop, imu_lead=lead,
+    return dataclasses.replace(opts, imu_history=history, hop=hop,
                                imu_buffer=max(opts.imu_buffer, int(span * MAX_IMU_RATE_HZ)))
 
 
@@ -242,6 +240,8 @@ class Pipeline:
         latency = time.perf_counter() - t_start
         chained, clip = outcome.chained, outcome.clip
         self._rig = outcome.calibration
+        with self._lock:
+            self.buffer.imu_lead = self.stream.imu_lead
         if outcome.init.ok and outcome.mode != "none":
             T_OC1 = chained.T_OB[0] @ clip.T_BC if chained is not None and self.settings.frames.outputs_in_odom \
                 else None

@@ -12,8 +12,12 @@ player shows each result's latency. Input: anything
 (with ``use_tf_static``), which come in the same stream and go to the Pipeline exactly as the node's callbacks do.
 Output: ``OUT.mcap`` (a single MCAP file) or, for any other name, a rosbag2 directory (``metadata.yaml`` + MCAP),
 written under a hidden temporary folder beside it and moved into place only when the replay finished and some clip
-produced a result: an output at ``OUT`` is always complete. An error, an interruption or a replay in which no clip
-produced a result keeps what was written as ``OUT.partial.mcap`` (``OUT.partial``), or nothing.
+produced a result: an output at ``OUT`` is always complete, and a partial output an earlier run left beside it is
+removed then. An error, an interruption or a replay in which no clip produced a result keeps what was written as
+``OUT.partial.mcap`` (``OUT.partial``), or nothing; the messages of one clip (its geometry, odometry and the
+``~/status`` that ends them) are written together, so a partial output never holds a clip without its status. An
+output that is, lies inside or contains an input (symbolic links resolved) is refused whatever ``force`` says, and
+one run at a time writes an output (``vi3_ros.io.output_lock``: a second run fails at once, naming the first).
 
 Memory does not grow with the input: events are read, fed and released one at a time, and the summary keeps one
 latency per clip.
@@ -27,7 +31,8 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,9 +46,14 @@ from msg_adapters.imu import samples_to_imus
 from msg_adapters.types import MessageTypes, jazzy_types
 from vi3_core.anchor.options import MODES
 from vi3_core.dataset.asl import find_mav0
-from vi3_core.errors import DataError, Vi3Error
+from vi3_core.dataset.calib import CameraCalib, load_calib
+from vi3_core.errors import CalibrationError, DataError, Vi3Error
+from vi3_core.eval.report import GYRO_FAILURE, gyro_check_hint
+from vi3_core.online.calibration import RigEstimate
+from vi3_core.paths import check_apart
 from vi3_core.types import ImuSamples
 from vi3_ros import interrupts
+from vi3_ros.io.output_lock import OutputLock
 from vi3_ros.io.reader import (
     CameraInfoEvent,
     DropEvent,
@@ -60,8 +70,13 @@ from vi3_ros.outputs import OUTPUTS
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import ClipReport, Pipeline, make_pipeline
 from vi3_ros.settings import InputOptions, Settings
+from vi3_ros.time_offset import resolve_time_offset
 
 REALTIME_STOP_WAIT_S = 0.5  # s an interrupted realtime replay waits for the clip in the worker, as the node's shutdown
+#: Outputs published outside any clip (the diagnostics timer, the IMU-rate odometry): written at once. Every other
+#: message belongs to the clip whose ``~/status`` ends it, and is written together with that status.
+STREAM_KEYS = frozenset({"diagnostics", "odom_imu"})
+UNIT_END_KEY = "status"
 
 
 def topic_name(topic: str, node: str = NODE_NAME) -> str:
@@ -91,6 +106,25 @@ def check_output(path: Path, *, force: bool) -> None:
                             "replaces only those")
 
 
+def _unwritable(path: Path, err: OSError) -> DataError:
+    """The error of an output ``path`` whose folder refuses a new entry (``err``)."""
+    return DataError(f"replay output {path}: cannot write into {path.parent} ({err.strerror})")
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """The output lock of ``path`` (``OutputLock``) for the block; DataError when it cannot be taken."""
+    lock = OutputLock(path, what="replay output")
+    try:
+        lock.acquire()
+    except OSError as err:
+        raise _unwritable(path, err) from None
+    try:
+        yield
+    finally:
+        lock.release()
+
+
 def _remove(path: Path) -> None:
     if path.is_dir() and not path.is_symlink():
         shutil.rmtree(path)
@@ -104,8 +138,11 @@ class McapSink:
     result to ``path`` (replacing it with ``force``); ``abandon`` keeps what was written at ``partial_path(path)``,
     or nothing when nothing was written. Either way the temporary folder is removed.
 
-    Thread-safe (the realtime replay's worker thread publishes beside the input thread); a message that arrives after
-    ``commit`` or ``abandon`` is discarded, as the node discards the outputs of a clip still running at shutdown.
+    ``publish`` keeps a clip's messages (each thread its own) until its ``~/status`` arrives and writes them with it
+    in one step that a signal does not cut short (``STREAM_KEYS`` are written at once). Thread-safe (the realtime
+    replay's worker thread publishes beside the input thread); a message that arrives after ``commit`` or
+    ``abandon`` is discarded, as the node discards the outputs of a clip still running at shutdown, and so is a
+    clip whose status never came. An error writing the bag (a full disk) is a DataError naming ``path``.
     ``clock``: when set, a function giving the log time (ns) of published outputs; else their header stamps."""
 
     def __init__(self, path: str | Path, *, types: MessageTypes, force: bool = False) -> None:
@@ -115,12 +152,12 @@ class McapSink:
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.vi3-replay-", dir=self.path.parent))
         except OSError as err:
-            raise DataError(f"replay output {self.path}: cannot write into {self.path.parent} "
-                            f"({err.strerror})") from None
+            raise _unwritable(self.path, err) from None
         self._bagdir = self._tmp / "bag"
         try:
-            self._writer = Writer(self._bagdir, version=9, storage_plugin=StoragePlugin.MCAP)
-            self._writer.open()
+            with self._writing():
+                self._writer = Writer(self._bagdir, version=9, storage_plugin=StoragePlugin.MCAP)
+                self._writer.open()
         except Exception:
             shutil.rmtree(self._tmp, ignore_errors=True)
             raise
@@ -129,26 +166,51 @@ class McapSink:
         self.clock: Callable[[], int] | None = None
         self._lock = threading.Lock()
         self._closed = False
+        self._units: dict[int, list[tuple[str, str, bytes, int]]] = {}  # thread -> its clip's messages so far
+
+    @contextmanager
+    def _writing(self) -> Iterator[None]:
+        """An OSError of the bag writer (a full disk, a file too large) as a DataError naming the output."""
+        try:
+            yield
+        except OSError as err:
+            raise DataError(f"replay output {self.path}: cannot write it ({err.strerror or err})") from err
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
         out = OUTPUTS[key]
-        self.write(topic_name(out.topic), out.msgtype, msg, stamp_ns if self.clock is None else self.clock())
+        entry = (topic_name(out.topic), out.msgtype, self.types.typestore.serialize_cdr(msg, out.msgtype),
+                 int(stamp_ns if self.clock is None else self.clock()))
+        if key in STREAM_KEYS:
+            self._write([entry])
+            return
+        unit = self._units.setdefault(threading.get_ident(), [])
+        unit.append(entry)
+        if key == UNIT_END_KEY:
+            del self._units[threading.get_ident()]
+            with interrupts.held():
+                self._write(unit)
 
     def write(self, topic: str, msgtype: str, msg: Any, stamp_ns: int) -> None:
-        data = self.types.typestore.serialize_cdr(msg, msgtype)
-        with self._lock:
+        """One message at once (an input copied to the output)."""
+        self._write([(topic, msgtype, self.types.typestore.serialize_cdr(msg, msgtype), int(stamp_ns))])
+
+    def _write(self, entries: list[tuple[str, str, bytes, int]]) -> None:
+        """(topic, type, CDR bytes, log time ns) entries, in one step."""
+        with self._lock, self._writing():
             if self._closed:
                 return
-            conn = self._connections.get(topic)
-            if conn is None:
-                conn = self._connections[topic] = self._writer.add_connection(topic, msgtype,
-                                                                              typestore=self.types.typestore)
-            self._writer.write(conn, int(stamp_ns), data)
-            self.counts[topic] += 1
+            for topic, msgtype, data, stamp_ns in entries:
+                conn = self._connections.get(topic)
+                if conn is None:
+                    conn = self._connections[topic] = self._writer.add_connection(topic, msgtype,
+                                                                                  typestore=self.types.typestore)
+                self._writer.write(conn, stamp_ns, data)
+                self.counts[topic] += 1
 
     def _close(self) -> None:
-        with self._lock:
+        with self._lock, self._writing():
             self._closed = True
+            self._units.clear()
             self._writer.close()
 
     def _result(self) -> Path:
@@ -156,11 +218,13 @@ class McapSink:
         return next(self._bagdir.glob("*.mcap")) if self.path.suffix == ".mcap" else self._bagdir
 
     def commit(self) -> Path:
-        """Close the bag and move it to ``path``; OSError (e.g. a full disk) leaves nothing behind."""
+        """Close the bag and move it to ``path``, removing the partial output of an earlier run; OSError or
+        DataError (e.g. a full disk) leaves nothing behind."""
         try:
             self._close()
             _remove(self.path)
             os.replace(self._result(), self.path)
+            _remove(partial_path(self.path))
         finally:
             shutil.rmtree(self._tmp, ignore_errors=True)
         return self.path
@@ -210,7 +274,8 @@ class ReplaySummary:
     replay wall time (backbone loading excluded); bag_s: span of the input's stamps; frames: camera frames read
     (dropped ones included); written: messages per output topic; output: where they are (``--output``, or the
     partial output when no clip produced a result); realtime: fed at the recorded rate (``feed_lag_ms``: the most the
-    feeding fell behind that rate, reading and decoding the input)."""
+    feeding fell behind that rate, reading and decoding the input); checked: clips with a result (not skipped),
+    gyro_failures: those of them the gyro check rejected (``hint``)."""
 
     clips: int = 0
     outcomes: Counter = field(default_factory=Counter)
@@ -223,6 +288,13 @@ class ReplaySummary:
     output: Path | None = None
     realtime: bool = False
     feed_lag_ms: float = 0.0
+    checked: int = 0
+    gyro_failures: int = 0
+
+    @property
+    def hint(self) -> str:
+        """What most likely went wrong when most clips failed the gyro check ("" otherwise)."""
+        return gyro_check_hint(self.gyro_failures, self.checked)
 
     @property
     def realtime_factor(self) -> float:
@@ -244,7 +316,8 @@ class ReplaySummary:
         drops = _counts(self.drops)
         if self.clips == 0:
             return f"no clip was completed from {self.frames} frames (drops: {drops or 'none'})"
-        return f"every clip failed: outcomes {_counts(self.outcomes)} (drops: {drops or 'none'})"
+        hint = f"; {self.hint}" if self.hint else ""
+        return f"every clip failed: outcomes {_counts(self.outcomes)} (drops: {drops or 'none'}){hint}"
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready: a value that does not exist (no latency, no wall time) is None."""
@@ -257,6 +330,7 @@ class ReplaySummary:
                 "bag_s": round(self.bag_s, 3), "realtime_factor": num(self.realtime_factor, 3),
                 "written": dict(sorted(self.written.items())),
                 "output": None if self.output is None else str(self.output),
+                **({"hint": self.hint} if self.hint else {}),
                 **({"realtime": True, "feed_lag_ms": round(self.feed_lag_ms, 1)} if self.realtime else {})}
 
     def text(self) -> str:
@@ -265,7 +339,7 @@ class ReplaySummary:
                  f"median latency: {d['median_latency_ms']} ms  bag: {d['bag_s']} s  wall: {d['wall_s']} s  "
                  f"realtime factor: {d['realtime_factor']}"]
         lines += [f"  {topic}: {n}" for topic, n in d["written"].items()]
-        return "\n".join(lines)
+        return "\n".join(lines + ([f"hint: {self.hint}"] if self.hint else []))
 
 
 def _counts(counts: Counter) -> str:
@@ -368,65 +442,149 @@ def topic_requests(inputs: InputOptions, image_topic: str | None = None,
             TopicRequest(imu_topic, inputs.imu_topic))
 
 
-def replay(input_path: str | Path, output: str | Path, *, settings: Settings, copy_inputs: bool = False,
-           progress: bool = True, force: bool = False, image_topic: str | None = None,
-           imu_topic: str | None = None, realtime: bool = False) -> ReplaySummary:
-    """Replay ``input_path`` through the pipeline configured by ``settings``; write outputs to ``output``;
-    ``realtime``: at the recorded rate into the node's worker thread (see the module docstring).
-
-    Without ``calib_file`` the input's own calibration (``input_calib``) is used, unless CameraInfo or /tf_static
-    are to be read from the input. Topics: ``topic_requests``. The output is written beside ``output`` and moved
-    there only when the replay finishes and some clip produced a result; otherwise (the summary says why) it is
-    kept as ``partial_path(output)``. An input or output that cannot be used raises ReplayAborted (a DataError
-    before anything is written); an interruption raises ReplayInterrupted; either says what was kept. Bad data
-    inside the input becomes drops and statuses."""
-    input_path, types = Path(input_path), jazzy_types()
-    resolve_input(input_path)  # a missing or unknown input fails before anything is written
+def input_settings(input_path: Path, settings: Settings, *,
+                   on_note: Callable[[str], None] | None = None) -> Settings:
+    """``settings`` for replaying ``input_path``: without ``calib_file``, the input's own calibration
+    (``input_calib``) unless CameraInfo or /tf_static are to be read from the input; a Kalibr calibration's
+    ``timeshift_cam_imu`` as ``time_offset`` (``vi3_ros.time_offset``; ``on_note`` is told when the parameter
+    overrides it). A calibration that cannot be used raises CalibrationError."""
     inputs = settings.inputs
     if not inputs.calib_file and not inputs.camera_info_topic and not inputs.use_tf_static:
         found = input_calib(input_path)
         settings = settings.replace(calib_file=str(found) if found is not None else "")
+    if settings.inputs.calib_file:
+        settings, note = resolve_time_offset(settings, load_calib(settings.inputs.calib_file))
+        if note and on_note is not None:
+            on_note(f"{settings.inputs.calib_file}: {note}")
+    return settings
+
+
+def _events(input_path: Path, settings: Settings, image_topic: str | None, imu_topic: str | None):
+    """The input's events as ``settings`` and the explicit topics choose them (``topic_requests``)."""
     image, imu = topic_requests(settings.inputs, image_topic, imu_topic)
+    return iter_events(input_path, image=image, imu=imu, camera_info_topic=settings.inputs.camera_info_topic,
+                       tf_static=settings.inputs.use_tf_static)
+
+
+def replay(input_path: str | Path, output: str | Path, *, settings: Settings, copy_inputs: bool = False,
+           progress: bool = True, force: bool = False, image_topic: str | None = None,
+           imu_topic: str | None = None, realtime: bool = False,
+           on_note: Callable[[str], None] | None = None) -> ReplaySummary:
+    """Replay ``input_path`` through the pipeline configured by ``settings``; write outputs to ``output``;
+    ``realtime``: at the recorded rate into the node's worker thread (see the module docstring).
+
+    The calibration and time offset: ``input_settings`` (``on_note``: its notes). Topics: ``topic_requests``. The
+    output is written beside ``output`` and moved there only when the replay finishes and some clip produced a
+    result; otherwise (the summary says why) it is kept as ``partial_path(output)``. An input or output that cannot
+    be used raises ReplayAborted (a DataError before anything is written: an output that is, lies inside or contains
+    an input, or one that another run is writing, too); an interruption raises ReplayInterrupted; either says what
+    was kept. Bad data inside the input becomes drops and statuses."""
+    if not str(output).strip():
+        raise DataError("replay output is empty: name an OUT.mcap file or a rosbag2 folder")
+    input_path, output, types = Path(input_path), Path(output), jazzy_types()
+    resolve_input(input_path)  # a missing or unknown input fails before anything is written
+    settings = input_settings(input_path, settings, on_note=on_note)
+    calib_file = settings.inputs.calib_file
+    inputs = [input_path] + ([Path(calib_file)] if calib_file else [])
+    check_apart(output, inputs, what="replay output")
+    check_apart(partial_path(output), inputs, what=f"the partial output of {output},")
+    check_output(output, force=force)  # its folder exists (McapSink checks again under the lock)
     summary = ReplaySummary(realtime=realtime)
-    interrupts.hold()  # a temporary output exists only together with the code that removes it
-    sink = McapSink(output, types=types, force=force)
-    try:
-        interrupts.release()  # a signal that came meanwhile interrupts here
-        pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,
-                                 on_report=lambda r: _record_latency(summary, r))
-        start = time.perf_counter()  # model loading is not part of the replay's speed
-        _run(pipeline, sink, iter_events(input_path, image=image, imu=imu,
-                                         camera_info_topic=settings.inputs.camera_info_topic,
-                                         tf_static=settings.inputs.use_tf_static),
-             summary, settings, copy_inputs=copy_inputs, progress=progress, name=input_path.name)
-        summary.wall_s = time.perf_counter() - start
-        summary.clips = pipeline.buffer.clips
-        summary.drops = pipeline.drop_counts
-        summary.outcomes = Counter(pipeline.outcomes)
-        summary.written = Counter(sink.counts)
-        interrupts.hold()  # the output is finished from here on: a signal is recorded (the command reports it)
-    except BaseException as err:
-        interrupts.hold()  # what is kept is decided without a signal cutting it short
-        partial = sink.abandon()
-        if isinstance(err, KeyboardInterrupt):
-            raise ReplayInterrupted(partial) from None
-        if isinstance(err, Vi3Error | OSError):
+    interrupts.hold()  # a temporary output (and the lock) exist only together with the code that removes them
+    with _locked(output):
+        sink = McapSink(output, types=types, force=force)
+        try:
+            interrupts.release()  # a signal that came meanwhile interrupts here
+            pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,
+                                     on_report=lambda r: _record_report(summary, r))
+            start = time.perf_counter()  # model loading is not part of the replay's speed
+            _run(pipeline, sink, _events(input_path, settings, image_topic, imu_topic), summary, settings,
+                 copy_inputs=copy_inputs, progress=progress, name=input_path.name)
+            summary.wall_s = time.perf_counter() - start
+            summary.clips = pipeline.buffer.clips
+            summary.drops = pipeline.drop_counts
+            summary.outcomes = Counter(pipeline.outcomes)
+            summary.written = Counter(sink.counts)
+            interrupts.hold()  # the output is finished from here on: a signal is recorded (the command reports it)
+        except BaseException as err:
+            interrupts.hold()  # what is kept is decided without a signal cutting it short
+            partial = sink.abandon()
+            if isinstance(err, KeyboardInterrupt):
+                raise ReplayInterrupted(partial) from None
+            if isinstance(err, Vi3Error | OSError):
+                why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+                raise ReplayAborted(f"{why}; {kept_text(partial)}", partial) from err
+            raise
+        try:
+            summary.output = sink.commit() if summary.results else sink.abandon()
+        except (OSError, DataError) as err:
             why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
-            raise ReplayAborted(f"{why}; {kept_text(partial)}", partial) from err
-        raise
-    try:
-        summary.output = sink.commit() if summary.results else sink.abandon()
-    except OSError as err:
-        raise ReplayAborted(f"writing {output}: {err.strerror}; nothing was written", None) from err
+            raise ReplayAborted(f"writing {output}: {why}; nothing was written", None) from err
     return summary
 
 
-def _record_latency(summary: ReplaySummary, report: ClipReport) -> None:
+class DiscardSink:
+    """OutputSink that keeps nothing (``replay_rig``: the pipeline runs for its state, not its messages); counts
+    what it was given per output key."""
+
+    def __init__(self, types: MessageTypes) -> None:
+        self.types = types
+        self.counts: Counter[str] = Counter()
+
+    def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
+        self.counts[key] += 1
+
+
+@dataclass
+class RigRun:
+    """What ``replay_rig`` found: ``estimate``, the rig's self-calibration at the end (None when no clip reached the
+    backbone); ``calib``, the configured camera calibration (None when none could be assembled); ``time_offset``, the
+    configured camera-IMU offset, s (t_imu = t_cam + time_offset); ``summary``, the replay's counts."""
+
+    estimate: RigEstimate | None
+    calib: CameraCalib | None
+    time_offset: float
+    summary: ReplaySummary
+
+
+def replay_rig(input_path: str | Path, *, settings: Settings, progress: bool = True, image_topic: str | None = None,
+               imu_topic: str | None = None, on_note: Callable[[str], None] | None = None) -> RigRun:
+    """Run the node's pipeline over ``input_path`` as ``replay`` does (every clip, in order; calibration and topics
+    as there) in ``init`` mode, online, with self-calibration on, writing nothing: the rig's estimate from the whole
+    recording (``vi3 calib``). An input that cannot be used raises a Vi3Error naming it."""
+    input_path = Path(input_path)
+    resolve_input(input_path)
+    settings = input_settings(input_path, settings, on_note=on_note).replace(mode="init", online=True,
+                                                                          self_calibration=True)
+    summary, types = ReplaySummary(), jazzy_types()
+    sink = DiscardSink(types)
+    pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=True,
+                             on_report=lambda r: _record_report(summary, r))
+    start = time.perf_counter()
+    _run(pipeline, sink, _events(input_path, settings, image_topic, imu_topic), summary, settings, copy_inputs=False,
+         progress=progress, name=input_path.name)
+    summary.wall_s = time.perf_counter() - start
+    summary.clips, summary.drops = pipeline.buffer.clips, pipeline.drop_counts
+    summary.outcomes = Counter(pipeline.outcomes)
+    try:
+        calib = pipeline.calibration.current()
+    except CalibrationError:
+        calib = None
+    calibrator = pipeline.stream.calibrator
+    return RigRun(calibrator.estimate if calibrator is not None and calibrator.clips else None, calib,
+                  settings.buffer.time_offset, summary)
+
+
+def _record_report(summary: ReplaySummary, report: ClipReport) -> None:
+    """A clip's final result in the summary: its latency, and whether the gyro check rejected it."""
     if np.isfinite(report.latency_s):
         summary.latencies_ms.append(report.latency_s * 1e3)
+    if report.result != "skipped":
+        summary.checked += 1
+        summary.gyro_failures += report.reason.startswith(GYRO_FAILURE)
 
 
-def _run(pipeline: Pipeline, sink: McapSink, events, summary: ReplaySummary, settings: Settings, *,
+def _run(pipeline: Pipeline, sink: McapSink | DiscardSink, events, summary: ReplaySummary, settings: Settings, *,
          copy_inputs: bool, progress: bool, name: str) -> None:
     """Feed every input event to the pipeline, the diagnostics timer in bag time (realtime: at the recorded rate, then
     wait for the worker to finish its clips); publish the final counts and close the pipeline (also when interrupted:

@@ -6,10 +6,10 @@ with the chosen backbone. ``realtime_factor`` = bag seconds / replay wall second
 >= 1 means the pipeline keeps up with the recording while processing every clip. ``cpu_s_per_clip`` = process CPU
 seconds of the replay (all threads; reading, decoding and writing included) / clips: less sensitive than wall time to
 other load on the machine. ``peak_rss_mb``: the process's peak resident memory (MB, ``getrusage``) when the replays
-end, before their odometry is read back and scored (which holds every ``~/odom/imu`` message); it must not grow with
-the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry (``imu_odom_rate``),
-so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out). ``threads`` and ``omp_wait_policy``:
-the torch settings the replay ran with (parameter ``threads``).
+end, before the ground truth is read and their odometry read back and scored (which holds every ``~/odom/imu``
+message); it must not grow with the bag's length (``--seconds``). The replay's defaults include the IMU-rate odometry
+(``imu_odom_rate``), so its cost is in these numbers (``--param imu_odom_rate=0`` to leave it out). ``threads`` and
+``omp_wait_policy``: the torch settings the replay ran with (parameter ``threads``).
 
 ``--realtime`` replays at the recorded rate into the node's worker thread, ``--backbone-delay S`` emulates a slower
 model: the clips the busy worker drops show in ``outcomes`` (``skipped:worker_busy``). With ground truth (the
@@ -73,11 +73,9 @@ def bench_replay(args: argparse.Namespace) -> dict:
     """Replay the input ``args.repeats`` times (default 1); median realtime factor and per-clip latency, and the
     odometry of the median run against ground truth where there is one."""
     if args.input:
-        inp, calib = Path(args.input), None
-        gt = ground_truth(inp)
+        inp, calib, asl = Path(args.input), None, Path(args.input)
     else:
         inp, calib, asl = _default_input(args.seconds or BENCH_SECONDS)
-        gt = ground_truth(asl)
     overrides = {"backbone": args.backbone, "device": args.device, "mode": "init",
                  **({"calib_file": str(calib)} if calib is not None else {}), **dict(map(parse_assignment, args.param))}
     if args.backbone_delay is not None:
@@ -91,6 +89,7 @@ def bench_replay(args: argparse.Namespace) -> dict:
                                realtime=args.realtime))
             cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
         peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        gt = ground_truth(asl)  # read after the peak: a long recording's ground truth is no part of the replay
         for run in runs:
             if gt is not None and run.output is not None:
                 odometry.append(odometry_report(read_odometry(run.output), gt, time_offset=settings.buffer.time_offset))

@@ -55,7 +55,10 @@ def local_ray(ray_module):
 
 
 def _eval(args: list, capsys) -> tuple[int, str, str]:
-    rc = cli.main(["eval", *map(str, args)])
+    try:
+        rc = cli.main(["eval", *map(str, args)])
+    except SystemExit as exc:  # argparse (--ray's ADDRESS is checked as it is parsed)
+        rc = exc.code
     out, err = capsys.readouterr()
     return rc, out, err
 
@@ -166,7 +169,7 @@ def test_ctrl_c_stops_the_workers_and_returns_what_finished(local_ray, sequence_
                                on_progress=interrupt)
     (res,) = ran.results
     assert ran.interrupted and 1 <= len(res.evals) < len(clips)
-    assert res.errors == [f"interrupted (Ctrl-C): {len(res.evals)} of {len(clips)} clips evaluated"]
+    assert res.errors == [f"interrupted: {len(res.evals)} of {len(clips)} clips evaluated"]
 
 
 def _read_until(proc: subprocess.Popen, pattern: bytes, timeout_s: float) -> bytes:
@@ -199,7 +202,7 @@ def test_ctrl_c_in_the_terminal_writes_what_finished_marked_partial(local_ray, r
     assert proc.returncode == 128 + signal.SIGINT, err
     obj = json.loads(json_out.read_text())
     assert obj["partial"] is True and 1 <= obj["n_clips"] < 14, obj.get("errors")
-    assert obj["errors"] == [f"{obj['sequence']}: interrupted (Ctrl-C): {obj['n_clips']} of 14 clips evaluated"]
+    assert obj["errors"] == [f"{obj['sequence']}: interrupted: {obj['n_clips']} of 14 clips evaluated"]
     assert "PARTIAL" in out.decode() and "Traceback" not in err
 
 

@@ -28,7 +28,8 @@ def test_stream_estimator_is_what_eval_and_replay_run(cache_dir, tmp_path, capsy
     stream = StreamEstimator(make_backbone("classical"))
     direct = []
     for idx in clip_indices(len(seq), options=EvalOptions(clips="sliding"), chained=True):
-        clip = make_clip(seq, idx, history_s=stream.online_options.online_max_bridge, with_depth=False)
+        clip = make_clip(seq, idx, history_s=stream.online_options.online_max_bridge, lead_s=stream.imu_lead,
+                         with_depth=False)
         out = stream.process(clip)
         direct.append((out.init.status.value, out.init.scale_sigma / out.init.scale if out.init.ok else None,
                        out.decision.describe(), out.init.fit.scale_rel_sigma if out.init.fit else np.nan))

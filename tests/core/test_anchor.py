@@ -19,7 +19,7 @@ from vi3_core.init import InitOptions
 from vi3_core.types import ImuSamples
 
 STEPS = 12
-#: These tests are about anchoring, not about which clips may claim a scale (tests/test_init.py): a single 0.7 s
+#: These tests are about anchoring, not about which clips may claim a scale (tests/core/test_init.py): a single 0.7 s
 #: clip rarely passes the error model's gate on its own, so the gate is opened here.
 OPEN_GATE = InitOptions(max_scale_sigma=10.0)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -89,6 +91,17 @@ def test_undistortion_is_exact_and_built_once():
     ("cam0: {intrinsics: [1, 1, 1, 1], resolution: [4, 4]}\n", "no T_cam_imu"),
     ("foo: 1\n", "neither an EuRoC sensor.yaml"),
     ("[1, 2\n", "not valid YAML"),
+    # issue 26: a mirror T_BS (det -1) made every clip a "backbone failure"; a missing distortion model was reported
+    # as "none distortion needs 0 coefficients, got 4"; a NaN or absurd timeshift was accepted
+    ("sensor_type: camera\nT_BS: {cols: 4, rows: 4, data: [-1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]}\n"
+     "intrinsics: [1, 1, 1, 1]\nresolution: [4, 4]\n", "T_BS is a mirror, not a rotation"),
+    ("sensor_type: camera\nT_BS: {cols: 4, rows: 4, data: [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]}\n"
+     "intrinsics: [1, 1, 1, 1]\nresolution: [4, 4]\ndistortion_coefficients: [0.1, 0.01, 0, 0]\n",
+     "distortion_model is missing but distortion_coefficients has 4 coefficients"),
+    ("cam0: {intrinsics: [1, 1, 1, 1], resolution: [4, 4], T_cam_imu: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "
+     "timeshift_cam_imu: .nan}\n", "timeshift_cam_imu = nan s"),
+    ("cam0: {intrinsics: [1, 1, 1, 1], resolution: [4, 4], T_cam_imu: [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "
+     "timeshift_cam_imu: 3.0}\n", r"timeshift_cam_imu = 3 s .* within \[-1, 1\] s"),
 ])
 def test_bad_calibration_names_file_and_problem(tmp_path, body, message):
     path = tmp_path / "sensor.yaml"
@@ -101,3 +114,16 @@ def test_bad_calibration_names_file_and_problem(tmp_path, body, message):
 def test_missing_calibration_file(tmp_path):
     with pytest.raises(CalibrationError, match="does not exist"):
         load_calib(tmp_path / "cam0" / "sensor.yaml")
+
+
+def test_kalibr_timeshift_is_the_time_offset_and_round_trips(tmp_path):
+    path = tmp_path / "camchain-imucam.yaml"
+    write_kalibr_camchain(replace(EUROC_CAM0, time_offset=0.05), path)
+    assert load_calib(path).time_offset == 0.05
+
+
+def test_a_calibration_behind_a_symlink_loop_says_so(tmp_path):
+    loop = tmp_path / "sensor.yaml"
+    loop.symlink_to(loop)
+    with pytest.raises(CalibrationError, match="sensor.yaml: calibration file is a symbolic link that points to "):
+        load_calib(loop)

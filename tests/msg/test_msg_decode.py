@@ -13,6 +13,7 @@ import yaml
 
 from msg_adapters.builders import diagnostic_array_to_statuses, point_cloud2_to_numpy
 from msg_adapters.camera_info import calib_to_camera_info, camera_info_to_calib
+from msg_adapters.errors import MalformedMessage
 from msg_adapters.image import compressed_to_numpy, image_to_numpy, numpy_to_image
 from msg_adapters.imu import imus_to_samples, samples_to_imus
 from msg_adapters.stamps import ns_to_stamp, stamp_to_ns
@@ -80,6 +81,23 @@ def test_compressed_png_is_lossless_and_jpeg_is_close():
     jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
     out = compressed_to_numpy(compressed_msg(jpg, "jpeg"))
     assert out.shape == rgb.shape and np.abs(out.astype(int) - rgb).mean() < 3.0
+
+
+def test_a_jpeg_the_decoder_finds_corrupt_or_truncated_is_malformed_not_used():
+    """Issue 26: a JPEG whose entropy-coded data was overwritten still decodes (OpenCV fills the rest in grey and
+    only prints libjpeg's warning), and was scored as a backbone failure. The strict decoder's warning is the
+    reason now; a sound JPEG decodes exactly as OpenCV decodes it."""
+    rng = np.random.default_rng(0)
+    gray = cv2.GaussianBlur((rng.random((120, 160)) * 255).astype(np.uint8), (9, 9), 3)
+    jpg = cv2.imencode(".jpg", gray)[1].tobytes()
+    np.testing.assert_array_equal(compressed_to_numpy(compressed_msg(jpg, "mono8; jpeg compressed mono8")),
+                                  cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_UNCHANGED))
+    corrupt = jpg[:1000] + bytes(300) + jpg[1300:]
+    assert cv2.imdecode(np.frombuffer(corrupt, np.uint8), cv2.IMREAD_UNCHANGED) is not None  # it still decodes
+    with pytest.raises(MalformedMessage, match="not a sound JPEG: the decoder says Corrupt JPEG data"):
+        compressed_to_numpy(compressed_msg(corrupt, "jpeg"))
+    with pytest.raises(MalformedMessage, match="not a sound JPEG: the decoder says Premature end of JPEG file"):
+        compressed_to_numpy(compressed_msg(jpg[:-100], "jpeg"))
 
 
 def test_point_cloud_laid_out_by_hand_with_padding_big_endian_and_counts():

@@ -27,7 +27,7 @@ from vi3_ros.replay_odom import correction_jumps, read_odometry
 
 pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
 
-OPEN_GATE = {"max_scale_sigma": 10.0}  # plumbing, not which clips may claim a scale (see tests/test_replay.py)
+OPEN_GATE = {"max_scale_sigma": 10.0}  # plumbing, not which clips may claim a scale (see tests/ros/test_replay.py)
 
 
 @pytest.fixture(scope="module")

@@ -296,6 +296,7 @@ def test_a_full_disk_is_a_clear_error(bag3, tmp_path):
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 2, err
     assert "File too large" in err and "Traceback" not in err
+    assert f"replay output {tmp_path / 'out.mcap'}: cannot write it (File too large)" in err  # the file named
     assert not (tmp_path / "out.mcap").exists() and _leftovers(tmp_path) == []
 
 

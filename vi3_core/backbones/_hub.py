@@ -155,8 +155,7 @@ def resize_crop(images: np.ndarray, K: np.ndarray, hw: tuple[int, int], *,
     and ``K`` [3,3] (pixels) as returned by ``check_clip``.
 
     Returns images [n,3,h,w] float32 in [0,1] on ``device`` (grey replicated to RGB; bilinear, antialiased when
-    shrinking) and K [n,3,3] float32 for the new pixel grid: the focal lengths and skew scale with the image, the
-    principal point follows the pixel-centre convention u' = (u + 0.5) * s - 0.5 - crop offset."""
+    shrinking) and K [n,3,3] float32 for the new pixel grid (``scaled_K``)."""
     x = torch.from_numpy(np.ascontiguousarray(images)).to(device)
     x = x[:, None] if x.ndim == 3 else x.permute(0, 3, 1, 2)  # grey stays one channel until after the resize
     x = x.float() / 255.0
@@ -167,12 +166,18 @@ def resize_crop(images: np.ndarray, K: np.ndarray, hw: tuple[int, int], *,
     x = F.interpolate(x, size=(Hs, Ws), mode="bilinear", align_corners=False, antialias=Hs < H)
     top, left = (Hs - h) // 2, (Ws - w) // 2
     x = x[:, :, top:top + h, left:left + w].clamp(0.0, 1.0).expand(n, 3, h, w)
-    sx, sy = Ws / W, Hs / H
-    Kn = np.array([[K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5 - left],
-                   [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5 - top],
-                   [0.0, 0.0, 1.0]])
+    Kn = scaled_K(K, Ws / W, Hs / H, left=left, top=top)
     Kt = torch.as_tensor(Kn, dtype=torch.float32, device=device).expand(n, 3, 3).clone()
     return x.contiguous(), Kt
+
+
+def scaled_K(K: np.ndarray, sx: float, sy: float, *, left: int = 0, top: int = 0) -> np.ndarray:
+    """K [3,3] (pixels) of an image scaled by ``sx`` x ``sy`` and then cropped ``left`` / ``top`` pixels: the focal
+    lengths and skew scale with the image, the principal point follows the pixel-centre convention
+    u' = (u + 0.5) * s - 0.5 - crop offset."""
+    return np.array([[K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5 - left],
+                     [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5 - top],
+                     [0.0, 0.0, 1.0]])
 
 
 def anchor_c2w(R_wc: torch.Tensor, t_wc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -23,7 +23,8 @@ be used leaves the sequence without depth and says why in ``Sequence.depth_gt`` 
 
 from __future__ import annotations
 
-import warnings
+import csv
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -34,6 +35,7 @@ from vi3_core import so3
 from vi3_core.dataset.calib import CameraCalib, load_calib, write_euroc_sensor_yaml
 from vi3_core.dataset.sequence import GroundTruthTrack, Sequence
 from vi3_core.errors import DataError
+from vi3_core.paths import missing_reason
 from vi3_core.sim.imu import ImuNoise
 from vi3_core.types import ImuSamples
 
@@ -61,38 +63,65 @@ def find_mav0(path) -> Path:
     raise DataError(f"{path}: not an EuRoC ASL folder (no cam0/ in it or in {path / 'mav0'})")
 
 
-def read_csv(path: Path, *, columns: int, first: str = "#timestamp") -> tuple[np.ndarray, np.ndarray]:
-    """An EuRoC csv: ([R] int64 ns, [R, columns-1] str cells); checks the header names ``columns`` columns."""
+def iter_csv(path: Path, *, columns: int, first: str = "#timestamp") -> Iterator[tuple[int, int, list[str]]]:
+    """An EuRoC csv row by row (nothing else held in memory): (row number counted from 1 after the header, stamp
+    int64 ns, the other ``columns - 1`` cells stripped); blank lines are skipped. DataError naming the file (and the
+    row) when it is missing, its header does not name ``columns`` columns starting with ``first``, a row has another
+    number of columns or a stamp is not integer nanoseconds."""
     if not path.is_file():
-        raise DataError(f"{path}: missing")
-    with path.open() as f:
+        raise DataError(f"{path}: {missing_reason(path)}")
+    with path.open(newline="") as f:
         header = f.readline().strip()
-    names = [h.strip() for h in header.split(",")]
-    if len(names) != columns or not names[0].startswith(first):
-        raise DataError(f"{path}: header {header!r} is not EuRoC's: expected {columns} comma-separated columns "
-                        f"starting with {first!r}")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # an empty file is no rows, said by the callers
+        names = [h.strip() for h in header.split(",")]
+        if len(names) != columns or not names[0].startswith(first):
+            raise DataError(f"{path}: header {header!r} is not EuRoC's: expected {columns} comma-separated columns "
+                            f"starting with {first!r}")
+        for row_no, row in enumerate((r for r in csv.reader(f) if r), start=1):
+            if len(row) != columns:
+                raise DataError(f"{path}: the number of columns changed from {columns} to {len(row)} at row "
+                                f"{row_no} (rows counted after the header; the header has {columns} columns)")
+            try:
+                ns = int(row[0].strip())
+            except ValueError:
+                raise DataError(f"{path}: row {row_no}: timestamp {row[0]!r} is not integer nanoseconds") from None
+            yield row_no, ns, [c.strip() for c in row[1:]]
+
+
+def read_csv(path: Path, *, columns: int, first: str = "#timestamp") -> tuple[np.ndarray, list[list[str]]]:
+    """A whole EuRoC csv (``iter_csv``): ([R] int64 ns, R lists of the other cells)."""
+    rows = [(ns, cells) for _, ns, cells in iter_csv(path, columns=columns, first=first)]
+    return np.array([ns for ns, _ in rows], dtype=np.int64), [cells for _, cells in rows]
+
+
+def iter_samples(path: Path, *, columns: int) -> Iterator[tuple[int, np.ndarray]]:
+    """The rows of a numeric EuRoC csv (IMU, ground truth) as (stamp ns, [columns-1] float64 values), checked as they
+    come: DataError naming the file and row when it has no row at all, a value is not a number or a stamp is not
+    after the previous one (a file must be sorted by time)."""
+    last = None
+    for row_no, ns, cells in iter_csv(path, columns=columns):
         try:
-            rows = np.loadtxt(path, delimiter=",", skiprows=1, comments=None, dtype=str, ndmin=2)
-        except ValueError as err:  # a short or long row: numpy names its row (counted from 1 after the header)
-            raise DataError(f"{path}: {str(err).split(';')[0]} (rows counted after the header; the header has "
-                            f"{columns} columns)") from None
-    if rows.size and rows.shape[1] != columns:
-        raise DataError(f"{path}: rows have {rows.shape[1]} columns, the header {columns}")
-    rows = np.char.strip(rows.reshape(-1, columns))
-    try:
-        ns = rows[:, 0].astype(np.int64)
-    except ValueError as err:
-        raise DataError(f"{path}: timestamp column is not integer nanoseconds ({err})") from None
-    return ns, rows[:, 1:]
+            values = np.array([float(c) for c in cells])
+        except ValueError as err:
+            raise DataError(f"{path}: row {row_no}: non-numeric value ({err})") from None
+        if last is not None and ns <= last:
+            raise DataError(f"{path}: its stamps are not increasing (unsorted, or a row repeated): row {row_no} "
+                            f"at {ns} ns follows {last} ns; sort the file by timestamp")
+        last = ns
+        yield ns, values
+    if last is None:
+        raise DataError(f"{path}: no samples (a header and no rows)")
 
 
-def _floats(cells: np.ndarray, path: Path) -> np.ndarray:
-    try:
-        return cells.astype(np.float64)
-    except ValueError as err:
-        raise DataError(f"{path}: non-numeric value ({err})") from None
+def _read_samples(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """A whole numeric EuRoC csv (``iter_samples``): ([R] int64 ns, [R, columns-1] float64), filled into arrays that
+    double when full (at most twice the result's memory)."""
+    ns, values, n = np.empty(1024, np.int64), np.empty((1024, columns - 1)), 0
+    for t, v in iter_samples(path, columns=columns):
+        if n == len(ns):
+            ns, values = np.resize(ns, 2 * n), np.resize(values, (2 * n, columns - 1))
+        ns[n], values[n] = t, v
+        n += 1
+    return ns[:n].copy(), values[:n].copy()
 
 
 def _read_png(path: Path, flags: int) -> np.ndarray:
@@ -163,7 +192,7 @@ def read_depth_source(depth_dir: Path, ns: np.ndarray, calib: CameraCalib) -> tu
     data = depth_dir / "data"
     if (depth_dir / "data.csv").is_file():
         d_ns, cells = read_csv(depth_dir / "data.csv", columns=2)
-        by_ns = {int(k): data / name for k, name in zip(d_ns, cells[:, 0])}
+        by_ns = {int(k): data / name for k, (name,) in zip(d_ns, cells)}
     elif data.is_dir():
         found = [f for f in data.iterdir() if f.suffix in DEPTH_SUFFIXES and f.stem.isdigit()]
         by_ns = {int(f.stem): f for f in found}
@@ -189,11 +218,19 @@ def read_depth_source(depth_dir: Path, ns: np.ndarray, calib: CameraCalib) -> tu
     return files, scale, raw_grid, f"{kinds} on the {grid}; {len(have)} of {len(ns)} frames"
 
 
+def imu_csv(mav0: Path) -> Path:
+    return mav0 / "imu0" / "data.csv"
+
+
+def iter_imu(mav0: Path) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """imu0/data.csv row by row (``iter_samples``): (stamp ns, gyro [3] rad/s, accel [3] m/s^2)."""
+    for ns, v in iter_samples(imu_csv(mav0), columns=7):
+        yield ns, v[:3], v[3:]
+
+
 def read_imu(mav0: Path) -> tuple[np.ndarray, ImuSamples]:
-    """imu0/data.csv -> (ns [M] int64, ImuSamples)."""
-    path = mav0 / "imu0" / "data.csv"
-    ns, cells = read_csv(path, columns=7)
-    vals = _floats(cells, path)
+    """imu0/data.csv -> (ns [M] int64, ImuSamples); DataError when it is empty or unsorted (``iter_samples``)."""
+    ns, vals = _read_samples(imu_csv(mav0), 7)
     return ns, ImuSamples(ns * 1e-9, vals[:, :3], vals[:, 3:])
 
 
@@ -202,8 +239,7 @@ def read_groundtruth(mav0: Path) -> GroundTruthTrack | None:
     path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     if not path.parent.is_dir():
         return None
-    ns, cells = read_csv(path, columns=17)
-    vals = _floats(cells, path)
+    ns, vals = _read_samples(path, 17)
     q_xyzw = vals[:, [4, 5, 6, 3]]
     T = so3.make_T(so3.quat_to_R(q_xyzw), vals[:, :3])
     return GroundTruthTrack(ns * 1e-9, T, v_WB=vals[:, 7:10], bg=vals[:, 10:13], ba=vals[:, 13:16], t_ns=ns)
@@ -223,6 +259,32 @@ def camera_stamps_without_images(imu_ns: np.ndarray, gt: GroundTruthTrack | None
     return inside[::step]
 
 
+def camera_frames(mav0: Path, camera: str = "cam0") -> tuple[np.ndarray, list[Path]] | None:
+    """The frames ``camera``/data.csv lists, in stamp order: ([N] int64 ns, their image files); None when the
+    camera has no data.csv (a folder of IMU and ground truth only). DataError when data.csv cannot be read (a broken
+    symbolic link, a loop) or lists a stamp twice."""
+    path = mav0 / camera / "data.csv"
+    if not path.is_file():
+        if path.exists() or path.is_symlink():  # a folder, a broken link, a loop: not "no images"
+            raise DataError(f"{path}: {missing_reason(path)}")
+        return None
+    ns, cells = read_csv(path, columns=2)
+    order = np.argsort(ns, kind="stable")
+    ns = ns[order]
+    twice = np.flatnonzero(np.diff(ns) == 0)
+    if len(twice):
+        raise DataError(f"{path}: stamp {ns[twice[0]]} ns is listed {int(np.sum(ns == ns[twice[0]]))} times; each "
+                        "frame once")
+    return ns, [mav0 / camera / "data" / cells[i][0] for i in order]
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """One camera frame as recorded, mono8 [H,W] (a colour PNG is converted to grey); DataError when the PNG is
+    missing or unreadable."""
+    img = _read_png(path, cv2.IMREAD_UNCHANGED)
+    return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+
+
 def read_asl(path, *, camera: str = "cam0") -> Sequence:
     """Open an ASL folder (``mav0`` or its parent) as a Sequence; images and depth load lazily.
 
@@ -234,11 +296,9 @@ def read_asl(path, *, camera: str = "cam0") -> Sequence:
     calib = load_calib(cam_dir / "sensor.yaml")
     imu_ns, imu = read_imu(mav0)
     gt = read_groundtruth(mav0)
-    if (cam_dir / "data.csv").is_file():
-        ns, cells = read_csv(cam_dir / "data.csv", columns=2)
-        files = [cam_dir / "data" / f for f in cells[:, 0]]
-        order = np.argsort(ns, kind="stable")
-        ns, files = ns[order], [files[i] for i in order]
+    frames = camera_frames(mav0, camera)
+    if frames is not None:
+        ns, files = frames
     else:
         ns, files = camera_stamps_without_images(imu_ns, gt, calib.rate_hz or 20.0), None
     load_depth, raw_grid, depth_gt = None, False, "none"
@@ -255,8 +315,7 @@ def read_asl(path, *, camera: str = "cam0") -> Sequence:
         if files is None:
             raise DataError(f"{cam_dir}: no data.csv, so no images (an IMU and ground-truth folder: evaluate it with "
                             "--backbone gt)")
-        img = _read_png(files[i], cv2.IMREAD_UNCHANGED)
-        return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        return read_frame(files[i])
 
     return Sequence(name=sequence_name(mav0), stamps=ns * 1e-9, imu=imu, calib=calib, gt=gt, load_image=load_image,
                     load_depth=load_depth, stamps_ns=ns, imu_ns=imu_ns, depth_on_raw_grid=raw_grid,

@@ -5,8 +5,12 @@ Two file formats are read (detected by content):
 - EuRoC ``cam0/sensor.yaml``: ``intrinsics: [fu, fv, cu, cv]``, ``distortion_model: radial-tangential``,
   ``distortion_coefficients: [k1, k2, p1, p2]``, ``resolution: [w, h]``, ``T_BS`` (camera pose in the body frame).
 - Kalibr ``camchain-imucam.yaml``: ``camN: {intrinsics, distortion_model: radtan | equidistant | none,
-  distortion_coeffs, resolution, T_cam_imu}``; ``T_cam_imu`` maps IMU points into the camera, so ``T_BC`` is its
-  inverse.
+  distortion_coeffs, resolution, T_cam_imu, timeshift_cam_imu}``; ``T_cam_imu`` maps IMU points into the camera, so
+  ``T_BC`` is its inverse; ``timeshift_cam_imu`` (s, ``t_imu = t_cam + timeshift``) becomes ``time_offset``.
+
+Every field is checked on load (a CalibrationError names the file, the field and its value): positive focal lengths,
+a principal point inside the image, finite coefficients in the number the distortion model takes, a rigid camera pose
+(a rotation, not a mirror), a finite time offset within a second.
 
 Undistortion keeps the raw intrinsics ``K`` for the undistorted pinhole image (same size): with EuRoC's barrel
 distortion every undistorted pixel then has a source pixel inside the raw image.
@@ -23,8 +27,10 @@ import yaml
 
 from vi3_core import so3
 from vi3_core.errors import CalibrationError
+from vi3_core.paths import missing_reason
 
 DIST_MODELS = ("radtan", "equidistant", "none")
+MAX_TIME_OFFSET_S = 1.0  # s; the largest camera-IMU time offset accepted (the time_offset parameter's range)
 _EUROC_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "equidistant": "equidistant", "none": "none"}
 
 
@@ -50,7 +56,8 @@ class Undistorter:
 @dataclass(frozen=True)
 class CameraCalib:
     """One camera: K [3,3] raw intrinsics, distortion ``dist_model`` with coefficients ``dist`` [k],
-    size (width, height) in pixels, ``T_BC`` [4,4] camera pose in the body (IMU) frame, frame rate in Hz."""
+    size (width, height) in pixels, ``T_BC`` [4,4] camera pose in the body (IMU) frame, frame rate in Hz,
+    ``time_offset`` s, the camera-IMU clock offset (t_imu = t_cam + time_offset; Kalibr's ``timeshift_cam_imu``)."""
 
     K: np.ndarray
     dist_model: str
@@ -58,6 +65,7 @@ class CameraCalib:
     size: tuple[int, int]
     T_BC: np.ndarray
     rate_hz: float | None = None
+    time_offset: float = 0.0
 
     def __post_init__(self) -> None:
         if self.dist_model not in DIST_MODELS:
@@ -87,6 +95,9 @@ class CameraCalib:
             return "T_BC (camera pose in the body frame) has NaN/Inf entries"
         if self.rate_hz is not None and not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
             return f"rate_hz = {self.rate_hz:g} must be finite and > 0"
+        if not (np.isfinite(self.time_offset) and abs(self.time_offset) <= MAX_TIME_OFFSET_S):
+            return (f"timeshift_cam_imu = {self.time_offset:g} s (the camera-IMU time offset) must be a finite number "
+                    f"within [-{MAX_TIME_OFFSET_S:g}, {MAX_TIME_OFFSET_S:g}] s")
         return None
 
     def check_frame(self, image: np.ndarray) -> str | None:
@@ -146,6 +157,10 @@ def _matrix(value, name: str, path: Path) -> np.ndarray:
         raise CalibrationError(f"{path}: {name} is not a 4x4 matrix ({err})") from None
     if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-4):
         raise CalibrationError(f"{path}: {name} is not a rigid transform:\n{T}")
+    det = float(np.linalg.det(T[:3, :3]))
+    if det < 0:
+        raise CalibrationError(f"{path}: {name} is a mirror, not a rotation (determinant of its rotation part "
+                               f"{det:.3f}; a camera pose has +1): check the sign of one axis")
     return T
 
 
@@ -156,16 +171,20 @@ def _build(entry: dict, *, intr_key: str, dist_key: str, T_BC: np.ndarray, path:
     if entry.get("camera_model", "pinhole") != "pinhole":
         raise CalibrationError(f"{path}: camera_model {entry['camera_model']!r} is not supported (pinhole only)")
     fu, fv, cu, cv = _numbers(entry[intr_key], intr_key, 4, float, path)
+    dist = np.asarray(entry.get(dist_key, []) or [], dtype=np.float64)
+    if "distortion_model" not in entry and dist.size:
+        raise CalibrationError(f"{path}: distortion_model is missing but {dist_key} has {dist.size} coefficients; "
+                               f"name the model (one of {sorted(_EUROC_MODELS)})")
     model = _EUROC_MODELS.get(str(entry.get("distortion_model", "none")))
     if model is None:
         raise CalibrationError(f"{path}: distortion_model {entry['distortion_model']!r} is not one of "
                                f"{sorted(_EUROC_MODELS)}")
-    dist = np.asarray(entry.get(dist_key, []) or [], dtype=np.float64)
     w, h = _numbers(entry["resolution"], "resolution", 2, int, path)
     rate = entry.get("rate_hz")
     K = np.array([[fu, 0.0, cu], [0.0, fv, cv], [0.0, 0.0, 1.0]])
     try:
-        return CameraCalib(K, model, dist, (w, h), T_BC, None if rate is None else float(rate))
+        return CameraCalib(K, model, dist, (w, h), T_BC, None if rate is None else float(rate),
+                           float(entry.get("timeshift_cam_imu", 0.0)))
     except (CalibrationError, TypeError, ValueError) as err:
         raise CalibrationError(f"{path}: {err}") from None
 
@@ -190,7 +209,7 @@ def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
         raise CalibrationError(f"{path}: is a directory, not a calibration file (EuRoC sensor.yaml or Kalibr "
                                "camchain YAML)")
     if not path.is_file():
-        raise CalibrationError(f"{path}: calibration file does not exist")
+        raise CalibrationError(f"{path}: calibration file {missing_reason(path)}")
     try:
         raw = path.read_text()
     except UnicodeDecodeError:
@@ -240,8 +259,9 @@ def write_euroc_sensor_yaml(calib: CameraCalib, path, *, comment: str = "") -> N
     Path(path).write_text(yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
 
 
-def write_kalibr_camchain(calib: CameraCalib, path, *, camera: str = "cam0", rostopic: str = "/cam0/image_raw") -> None:
-    """Write ``calib`` as a Kalibr ``camchain-imucam.yaml`` (``T_cam_imu`` = inverse of ``T_BC``)."""
+def kalibr_camchain(calib: CameraCalib, *, camera: str = "cam0", rostopic: str = "/cam0/image_raw") -> str:
+    """``calib`` as the text of a Kalibr ``camchain-imucam.yaml`` (``T_cam_imu`` = inverse of ``T_BC``,
+    ``timeshift_cam_imu`` = ``time_offset``)."""
     K = calib.K
     entry = {
         "T_cam_imu": so3.inv_T(calib.T_BC).tolist(),
@@ -252,6 +272,11 @@ def write_kalibr_camchain(calib: CameraCalib, path, *, camera: str = "cam0", ros
         "intrinsics": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])],
         "resolution": list(calib.size),
         "rostopic": rostopic,
-        "timeshift_cam_imu": 0.0,
+        "timeshift_cam_imu": float(calib.time_offset),
     }
-    Path(path).write_text(yaml.safe_dump({camera: entry}, sort_keys=False, default_flow_style=None))
+    return yaml.safe_dump({camera: entry}, sort_keys=False, default_flow_style=None)
+
+
+def write_kalibr_camchain(calib: CameraCalib, path, *, camera: str = "cam0", rostopic: str = "/cam0/image_raw") -> None:
+    """Write ``kalibr_camchain(calib)`` to ``path``."""
+    Path(path).write_text(kalibr_camchain(calib, camera=camera, rostopic=rostopic))

@@ -357,6 +357,6 @@ class _Pool:
                             [e for _, o in parts for e in o.errors])
             finished = len(parts) == (1 if job.chained else len(job.clips))
             if interrupted and not finished:
-                res.errors.append(f"interrupted (Ctrl-C): {len(res.evals)} of {len(job.clips)} clips evaluated")
+                res.errors.append(runner.interrupted_note(len(res.evals), len(job.clips)))
             results.append(res)
         return results

@@ -72,6 +72,20 @@ def expected_columns(mode: str) -> list[str]:
     return ["base", "init"] + ([mode] if mode != "init" else [])
 
 
+#: How the reason of a clip that failed the gyro check starts (``vi3_core.init.initializer.rotation_failure``).
+GYRO_FAILURE = "backbone failure"
+
+
+def gyro_check_hint(failed: int, total: int) -> str:
+    """The run's hint when most of its ``total`` clips with a result (more than half, and at least 2) were
+    ``failed`` by the gyro check: then the input, not the backbone, is the likelier cause; "" otherwise."""
+    if failed < 2 or 2 * failed <= total:
+        return ""
+    return (f"most clips failed the gyro check ({failed} of {total}): a camera-IMU time offset (parameter "
+            "time_offset, Kalibr timeshift_cam_imu) or a wrong T_BS (camera pose in the IMU frame) is the likelier "
+            "cause than the backbone")
+
+
 def status_note(evals: Sequence[ClipEval]) -> str:
     """Why no clip claimed a scale ("" when one did): the status counts and the most frequent reason."""
     if any(e.ok for e in evals) or not evals:
@@ -87,8 +101,8 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
     """The JSON report: ``n_clips``, ``n_ok``, ``n_paired`` (clips in the paired medians), ``columns`` (paired
     medians of every column: base, init, cond/ttr), ``base`` and ``vi3`` (its base and ``mode`` columns),
     ``base_all`` (the base over every clip), ``init`` (median init errors over ok clips), ``claimed_outliers`` and
-    ``sigma_calibration`` (``vi3_core.eval.claims``), ``status_counts``, ``note`` (why no clip is ok, "" otherwise)
-    and a per-clip list."""
+    ``sigma_calibration`` (``vi3_core.eval.claims``), ``status_counts``, ``note`` (why no clip is ok, "" otherwise),
+    ``hint`` (``gyro_check_hint``) and a per-clip list."""
     ok = [e for e in evals if e.ok]
     columns = expected_columns(mode)
     paired = [e for e in evals if all(c in e.columns for c in columns)]
@@ -107,6 +121,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
         "sigma_calibration": clip_claims(evals, "init").calibration(),
         "status_counts": {s.value: counts.get(s.value, 0) for s in InitStatus},
         "note": status_note(evals),
+        "hint": gyro_check_hint(sum(e.reason.startswith(GYRO_FAILURE) for e in evals), len(evals)),
         "clips": [{"frames": [int(e.indices[0]), int(e.indices[-1])], "t0": float(e.stamps[0]), "status": e.status,
                    "reason": e.reason, "mode": e.mode,
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
@@ -172,7 +187,7 @@ def format_tables(summary: dict) -> str:
              _grid(["Initialisation", "error"], init_rows), f"clip status: {status}"]
     if summary.get("depth_gt", "").startswith("unreadable"):
         parts.append(f"depth ground truth {summary['depth_gt']}")
-    return "\n\n".join(parts + ([summary["note"]] if summary["note"] else []))
+    return "\n\n".join(parts + [summary[k] for k in ("note", "hint") if summary.get(k)])
 
 
 def format_clips(summary: dict) -> str:
@@ -251,12 +266,8 @@ def calibration_summary(run) -> dict | None:
     def first(flag: str) -> float | None:
         return next((float(t - t0) for t, c in known if getattr(c, flag)), None)
 
-    return {"rotation_deg": np.degrees(final.rotation).tolist(),
-            "rotation_sigma_deg": np.degrees(final.rotation_sigma).tolist(),
-            "time_offset_ms": 1e3 * final.time_offset, "time_offset_sigma_ms": 1e3 * final.time_offset_sigma,
-            "rotation_applied": final.rotation_applied, "offset_applied": final.offset_applied,
-            "rotation_applied_after_s": first("rotation_applied"), "offset_applied_after_s": first("offset_applied"),
-            "clips": final.clips}
+    return {**final.as_dict(), "rotation_applied_after_s": first("rotation_applied"),
+            "offset_applied_after_s": first("offset_applied")}
 
 
 def pool_chained(named_runs: Sequence[tuple[str, object]]) -> dict:

@@ -97,8 +97,9 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
         raise DataError(f"evaluate_clip: the clip at t = {clip.stamps[0]:.6f}..{clip.stamps[-1]:.6f} s has no ground "
                         "truth (the GT track does not cover it); evaluation needs GT poses and velocities")
     outcome = stream.process(clip)
-    if outcome.clip is not clip:  # the stream put shared frames in place of its first ones
-        clip, indices = outcome.clip, None
+    if not np.array_equal(outcome.clip.stamps, clip.stamps):  # the stream put shared frames in place of its first
+        indices = None
+    clip = outcome.clip  # with the rig's self-calibration applied
     result, init = outcome.result, outcome.init
     T_gt = gt_camera_poses(clip.gt, clip.T_BC)
     g_b1, _, _ = gt_init_state(clip.gt)
@@ -155,6 +156,20 @@ class EvaluationStopped(Vi3Error):
         self.evals, self.online = evals, online
 
 
+class EvaluationInterrupted(KeyboardInterrupt):
+    """An evaluation stopped by Ctrl-C (or a signal raised as KeyboardInterrupt) part-way: ``evals`` (and ``online``)
+    as ``EvaluationStopped``."""
+
+    def __init__(self, evals: list[ClipEval], online: OnlineRun | None = None) -> None:
+        super().__init__(f"interrupted after {len(evals)} clips")
+        self.evals, self.online = evals, online
+
+
+def interrupted_note(done: int, total: int) -> str:
+    """The error of a sequence whose evaluation was interrupted (serial and Ray runs alike)."""
+    return f"interrupted: {done} of {total} clips evaluated"
+
+
 def check_sequence(seq: Sequence, *, options: EvalOptions, chained: bool = False) -> list[np.ndarray]:
     """The clips ``evaluate_sequence`` (``evaluate_online``: ``chained``) would evaluate; raises DataError when ``seq``
     cannot be evaluated (no ground truth, no calibration, too short), before any clip is."""
@@ -173,15 +188,19 @@ def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEva
 
 def evaluate_sequence(seq: Sequence, backbone: Backbone, *, options: EvalOptions | None = None) -> list[ClipEval]:
     """Evaluate every sampled clip of ``seq`` (which must have ground truth), with a progress bar over clips.
-    A clip that fails raises ``EvaluationStopped`` with the clips evaluated before it."""
+    A clip that fails raises ``EvaluationStopped`` with the clips evaluated before it, an interruption
+    ``EvaluationInterrupted``."""
     options = options or EvalOptions()
     out = []
-    for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
-                    disable=not options.progress):
-        try:
-            out.append(evaluate_frames(seq, idx, backbone, options=options))
-        except (Vi3Error, ValueError, OSError) as err:
-            raise _stopped(seq, idx, err, out) from err
+    try:
+        for idx in tqdm(check_sequence(seq, options=options), desc=f"eval {seq.name}", unit="clip",
+                        disable=not options.progress):
+            try:
+                out.append(evaluate_frames(seq, idx, backbone, options=options))
+            except (Vi3Error, ValueError, OSError) as err:
+                raise _stopped(seq, idx, err, out) from err
+    except KeyboardInterrupt:
+        raise EvaluationInterrupted(out) from None
     return out
 
 
@@ -251,7 +270,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     trajectory, scored against GT per segment. Clips that are not contiguous are still evaluated one by one, but their
     trajectory is not scored (``OnlineRun.reason``). ``clips`` overrides the sampled frame indices (a test leaves a gap
     in the images); ``on_clip(k)`` is called after the k-th clip is evaluated (progress beside the bar). A clip that
-    fails raises ``EvaluationStopped`` with what was computed before it."""
+    fails raises ``EvaluationStopped`` with what was computed before it, an interruption ``EvaluationInterrupted``."""
     options = options or EvalOptions()
     if options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
@@ -259,26 +278,29 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     clips = sampled if clips is None else clips
     stream = options.stream(backbone, online=True)
     max_bridge = stream.online_options.online_max_bridge
-    lead = (options.calibration_options or CalibrationOptions()).calib_prior_offset  # as the node's buffer waits
     evals: list[ClipEval] = []
     run = OnlineRun(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
-    for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
-        try:
-            # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
-            clip = make_clip(seq, idx, history_s=max_bridge, lead_s=lead, with_images=backbone.needs_images)
-            ev = evaluate_clip(clip, stream, indices=idx)
-            if len(ev.stamps) != len(idx) or not np.array_equal(ev.stamps, seq.stamps[idx]):
-                ev.indices = np.searchsorted(seq.stamps, ev.stamps)
-        except (Vi3Error, ValueError, OSError) as err:
-            raise _stopped(seq, idx, err, evals, _finish(seq, stream, run, evals, clips)) from err
-        run.decisions.append(ev.decision.describe())
-        run.calibration.append(ev.calibration)
-        run.clip_t0.append(float(ev.stamps[0]))
-        if evals and ev.decision.reset:  # the first clip of the stream always starts the window
-            run.resets += 1
-        evals.append(ev)
-        if on_clip is not None:
-            on_clip(len(evals))
+    try:
+        for idx in tqdm(clips, desc=f"eval {seq.name} (chained)", unit="clip", disable=not options.progress):
+            try:
+                # IMU before the clip over the longest gap the window bridges, as the node's clip buffer keeps it.
+                clip = make_clip(seq, idx, history_s=max_bridge, lead_s=stream.imu_lead,
+                                 with_images=backbone.needs_images)
+                ev = evaluate_clip(clip, stream, indices=idx)
+                if len(ev.stamps) != len(idx) or not np.array_equal(ev.stamps, seq.stamps[idx]):
+                    ev.indices = np.searchsorted(seq.stamps, ev.stamps)
+            except (Vi3Error, ValueError, OSError) as err:
+                raise _stopped(seq, idx, err, evals, _finish(seq, stream, run, evals, clips)) from err
+            run.decisions.append(ev.decision.describe())
+            run.calibration.append(ev.calibration)
+            run.clip_t0.append(float(ev.stamps[0]))
+            run.resets += bool(evals and ev.decision.reset)  # the first clip of the stream always starts the window
+            evals.append(ev)
+            if on_clip is not None:
+                on_clip(len(evals))
+    except KeyboardInterrupt:  # the clips recorded whole (a signal between the appends above drops that clip)
+        del run.decisions[len(evals):], run.calibration[len(evals):], run.clip_t0[len(evals):]
+        raise EvaluationInterrupted(evals, _finish(seq, stream, run, evals, clips)) from None
     return evals, _finish(seq, stream, run, evals, clips)
 
 

@@ -44,9 +44,7 @@ class CalibrationOptions:
     """self_calibration: estimate the rig (false: the configured calibration, as given);
     calib_max_rotation_sigma: deg, the estimate of the mount's rotation replaces the configured one once its largest
         1-sigma is below this; calib_max_offset_sigma: s, the same for the time offset;
-    calib_prior_rotation: deg, calib_prior_offset: s, how far the configuration may be off (the estimate's prior; the
-        node's clips also wait for calib_prior_offset s of IMU beyond their last frame, so an estimated offset of up
-        to that can be applied);
+    calib_prior_rotation: deg, calib_prior_offset: s, how far the configuration may be off (the estimate's prior);
     calib_rotation_walk: deg/sqrt(s), calib_offset_walk: s/sqrt(s), how fast the rig may change in flight;
     calib_tolerance_rotation: deg, calib_tolerance_offset: s, how far the configuration may be off before the node
         warns (``RigEstimate.off_by``: beyond this by three sigmas)."""
@@ -115,6 +113,14 @@ class RigEstimate:
         return (f"mount rotation [{rot}] deg ({state}), time offset {1e3 * self.time_offset:+.1f}+-"
                 f"{1e3 * self.time_offset_sigma:.1f} ms ({offset}), {self.clips} clips")
 
+    def as_dict(self) -> dict:
+        """JSON-ready: the rotation about the body axes and its sigmas in deg, the time offset and its sigma in ms,
+        whether each is applied, the clips used."""
+        return {"rotation_deg": np.degrees(self.rotation).tolist(),
+                "rotation_sigma_deg": np.degrees(self.rotation_sigma).tolist(),
+                "time_offset_ms": 1e3 * self.time_offset, "time_offset_sigma_ms": 1e3 * self.time_offset_sigma,
+                "rotation_applied": self.rotation_applied, "offset_applied": self.offset_applied, "clips": self.clips}
+
     def off_by(self) -> str:
         """How the configuration is off where the estimate is sure it is off by more than its tolerance (by three
         sigmas; ``options.calib_tolerance_*``), "" where it is not: the warning a flight stack's operator needs."""
@@ -129,7 +135,7 @@ class RigEstimate:
 
     def for_clip(self, clip: Clip) -> RigEstimate:
         """The estimate as it can be applied to ``clip``: the time offset only where the clip's IMU history covers its
-        frames moved by it (else the clip keeps its configured stamps)."""
+        frames at their moved times (else the clip keeps its IMU as configured)."""
         if not self.offset_applied:
             return self
         stamps, history = clip.stamps + self.time_offset, clip.imu_history
@@ -138,24 +144,19 @@ class RigEstimate:
         return self
 
     def apply(self, clip: Clip) -> Clip:
-        """``clip`` with the applied parts of the estimate (``for_clip`` says which it can take): its mount turned, its
-        stamps (IMU time) moved by the time offset and its IMU cut again from its history for them."""
+        """``clip`` with the applied parts of the estimate (``for_clip`` says which it can take): its mount turned;
+        its IMU history moved onto the frames' clock by the time offset (a frame at stamp t shows the body at IMU time
+        t + time_offset) and its IMU cut again from it. The frames' stamps stay: a frame shared by two clips keeps one
+        stamp while the estimate moves."""
         T_BC = clip.T_BC
         if self.rotation_applied:
             T_BC = T_BC.copy()
             T_BC[:3, :3] = so3.exp(self.rotation) @ clip.T_BC[:3, :3]
         if not self.offset_applied:
             return replace(clip, T_BC=T_BC)
-        stamps = clip.stamps + self.time_offset
-        return replace(clip, T_BC=T_BC, stamps=stamps, imu=clip.imu_history.window(float(stamps[0]), float(stamps[-1])))
-
-    def configured(self, clip: Clip) -> Clip:
-        """``clip`` (``apply``'s output) as configured: its mount and stamps back (its IMU as it is)."""
-        T_BC = clip.T_BC
-        if self.rotation_applied:
-            T_BC = T_BC.copy()
-            T_BC[:3, :3] = so3.exp(-self.rotation) @ clip.T_BC[:3, :3]
-        return replace(clip, T_BC=T_BC, stamps=clip.stamps - self.time_offset if self.offset_applied else clip.stamps)
+        history = clip.imu_history.shifted(-self.time_offset)
+        return replace(clip, T_BC=T_BC, imu=history.window(float(clip.stamps[0]), float(clip.stamps[-1])),
+                       imu_history=history)
 
     def corrected(self, T_BC: np.ndarray, time_offset: float) -> tuple[np.ndarray, float]:
         """The configured mount T_BC [4,4] and time offset (s, t_imu = t_cam + time_offset) corrected by the parts of
@@ -224,12 +225,14 @@ class RigCalibrator:
             walk = np.diag([math.radians(o.calib_rotation_walk) ** 2] * 3 + [o.calib_offset_walk ** 2])
             self.info = np.linalg.inv(np.linalg.inv(self.info) + walk * (t - self.t_last))
         self.t_last = max(t, self.t_last or t)
-        x = self.x
+        x, linearised = self.x, False
         for _ in range(RELINEARISATIONS):  # Gauss-Newton on the prior and the clip (an iterated Kalman update)
             got = self._clip_information(clip, geometry, bg, x)
             if isinstance(got, str):
-                return got
-            info, step = got
+                if not linearised:
+                    return got
+                break  # the step moved the frames past the clip's IMU: keep the last linearisation
+            linearised, (info, step) = True, got
             x = np.linalg.solve(self.info + info, self.info @ self.x + info @ (x + step))
         self.x, self.info = x, self.info + info
         self.clips += 1

@@ -1,10 +1,11 @@
 """``StreamEstimator``: the one per-clip loop of a camera + IMU stream, shared by the node, replay and ``vi3 eval``.
 
-Per clip: the rig's self-calibration where its sigma allows (``RigEstimate.apply``: the camera mount turned, the
-frames' stamps moved by the time offset); with ``shared_frames``, the last frames of the clip before it in the window
-in place of its first ones when clips in between were dropped (``_compose``); the initialisation's data checks (a
-clip they reject costs no inference); the backbone and the anchoring mode (``vi3_core.anchor.anchor``) with the
-stream's initialisation; then the clip's place in the odom trajectory, and its rotations added to the rig's estimate.
+Per clip: with ``shared_frames``, the last frames of the clip before it in the window in place of its first ones when
+clips in between were dropped (``_compose``); the rig's self-calibration where its sigma allows
+(``RigEstimate.apply``: the camera mount turned, the IMU moved onto the frames' clock by the time offset); the
+initialisation's data checks (a clip they reject costs no inference); the backbone and the anchoring mode
+(``vi3_core.anchor.anchor``) with the stream's initialisation; then the clip's place in the odom trajectory, and its
+rotations (as configured) added to the rig's estimate.
 The initialisation is the online window's (``OnlineEstimator``: gravity, biases and velocity carried across clips,
 the clips chained into odom) with ``online``; every clip on its own as in the paper without it; or, for evaluation,
 the oracle from the clip's ground truth. ``process`` returns everything the clip changed as a ``ClipOutcome``.
@@ -12,6 +13,7 @@ the oracle from the clip's ground truth. ``process`` returns everything the clip
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -53,15 +55,16 @@ class ClipOutcome:
     """What one clip changed.
 
     clip: the clip as processed (with the shared frames in place of its first ones where ``_compose`` put them, and
-    the applied parts of the rig's estimate: its mount turned, its stamps moved by the time offset);
+    the applied parts of the rig's estimate: its mount turned, its IMU moved by the time offset; its stamps as
+    configured);
     init: the clip's initialisation (the window's with ``online``), also when the backbone did not run; result: the
     final ``AnchorResult`` (None when the data checks rejected the clip before the backbone); fast: the init-mode
     result that ``cond``/``ttr`` refine (None in ``init`` mode or when the init is not ok); decision: the online
     window's decision, with the clip's own initialisation (None without ``online``); chained: the clip placed in odom
     (None unless it was chained); state: the odom state after the clip, where IMU-rate propagation starts (None
-    before the first chained clip); segment: the odom segment the trajectory is in (0: the first); calibration: the
-    rig's estimate after the clip (None without self-calibration); calibration_note: why the clip did not add to it
-    ("" when it did)."""
+    before the first chained clip; its stamps on the IMU's clock); segment: the odom segment the trajectory is in (0:
+    the first); calibration: the rig's estimate after the clip (None without self-calibration); calibration_note: why
+    the clip did not add to it ("" when it did)."""
 
     clip: Clip
     init: InitResult
@@ -100,6 +103,14 @@ class StreamEstimator:
         calibration = calibration or CalibrationOptions()
         self.calibrator = RigCalibrator(calibration, max_rotation_error_deg=self.init_options.max_rotation_error) \
             if self.options.online and calibration.self_calibration else None
+        self._chained_offset = 0.0  # s: the time offset applied to the last chained clip (``_state``)
+
+    @property
+    def imu_lead(self) -> float:
+        """s of IMU the next clip should carry in its history beyond its last frame (``make_clip``'s ``lead_s``, the
+        node's ``ClipBuffer.imu_lead``): the rig's estimated time offset where it is positive (a frame then shows the
+        body at a later IMU time), so that the estimate can be used and applied; 0 without self-calibration."""
+        return max(0.0, float(self.calibrator.x[3])) if self.calibrator is not None else 0.0
 
     @property
     def trajectory(self) -> Trajectory:
@@ -118,8 +129,9 @@ class StreamEstimator:
         result when it is ok, before ``cond``/``ttr`` refine it (the node publishes it at once). ``before_backbone``
         is called once the clip passed the data checks; when it returns False the clip is abandoned (None: nothing
         changed). Bad data never raises: it is the outcome's ``init`` status."""
-        rig = self.calibrator.estimate.for_clip(clip) if self.calibrator is not None else None
-        clip = self._compose(rig.apply(clip) if rig is not None else clip)
+        configured = self._compose(clip)
+        rig = self.calibrator.estimate.for_clip(configured) if self.calibrator is not None else None
+        clip = rig.apply(configured) if rig is not None else configured
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
         if reason is not None:
             init = InitResult(InitStatus.REJECTED, reason)
@@ -128,7 +140,7 @@ class StreamEstimator:
                                calibration=rig)
         if before_backbone is not None and not before_backbone():
             return None
-        self.backbone.bind(rig.configured(clip) if rig is not None else clip)
+        self.backbone.bind(configured)
         fast: list[AnchorResult] = []
 
         def take_fast(result: AnchorResult) -> None:
@@ -142,9 +154,11 @@ class StreamEstimator:
         window = self.window
         chained = window.update(clip, result) if window is not None else None
         note = ""
+        if chained is not None:
+            self._chained_offset = rig.time_offset if rig is not None and rig.offset_applied else 0.0
         if self.calibrator is not None:  # the rotations as configured, whatever became of the clip
             bg = result.init.bg if np.all(np.isfinite(result.init.bg)) else np.zeros(3)
-            note = self.calibrator.add(rig.configured(clip), result.base, bg)
+            note = self.calibrator.add(configured, result.base, bg)
             rig = self.calibrator.estimate
         return ClipOutcome(clip, result.init, result, fast[0] if fast else None,
                            window.last if window is not None else None, chained, self._state(), self._segment(),
@@ -171,7 +185,12 @@ class StreamEstimator:
         return None
 
     def _state(self) -> OdomState | None:
-        return self.window.state if self.window is not None else None
+        """The window's state of the last chained clip with its stamps on the IMU's clock (moved by the time offset
+        applied to that clip), where propagation through the raw IMU starts."""
+        state = self.window.state if self.window is not None else None
+        if state is None or not self._chained_offset:
+            return state
+        return dataclasses.replace(state, stamps=state.stamps + self._chained_offset)
 
     def _segment(self) -> int:
         return len(self.trajectory.resets)

@@ -7,14 +7,15 @@ companion (``--plot``) and TUM trajectories for ``evo`` (``--export-tum``). With
 reported, then the clips of all of them pooled (the paper's medians over clips); the JSON object is then
 {"sequences": [...], "pooled": {...}} and plots / TUM files get the sequence name (unique within the run).
 
-Every input and output path is checked before any clip is evaluated. A failure after that (a clip that cannot be
-read, an output that cannot be written) still writes what was computed, marked ``"partial": true`` with the
-errors, and exits with status 2.
+Every input and output path is checked before any clip is evaluated (an output file that is an input, under any
+name, is refused). A failure after that (a clip that cannot be read, an output that cannot be written) still writes
+what was computed, marked ``"partial": true`` with the errors, and exits with status 2. Ctrl-C or SIGTERM stops the
+run and writes what had finished the same way, marked partial, with exit status 130 / 143 (128 + the signal).
 
 With ``--ray [ADDRESS]`` the clips (independent runs) or whole sequences (chained runs) are evaluated by a pool of
 Ray workers (``vi3_core.eval.distributed``), each building the backbone once and reading the inputs from their path,
 which every node must see; the report is the serial run's. A clip whose worker died is run again (twice at most);
-Ctrl-C stops the workers and writes what had finished, marked partial (exit status 130).
+Ctrl-C and SIGTERM stop the workers and write what had finished, as in a serial run.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import signal
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from vi3_ros import interrupts
 
 MODES = ("init", "cond", "ttr")  # = vi3_core.anchor.MODES, not imported here: that pulls in torch
 RESERVED_NAMES = ("sigma",)  # <stem>_sigma.png is the sigma plot's
@@ -98,7 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--export-tum", default=None, metavar="DIR",
                    help="write TUM trajectories (for evo) here: per clip, and the chained odom_vi3.txt / odom_gt.txt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS", type=_ray_address,
                    help="evaluate on Ray workers: without ADDRESS on RAY_ADDRESS, a cluster started with `ray start` "
                         "here, or else a new local instance on this machine's cores; else on the cluster at ADDRESS "
                         "(auto, local, HEAD_HOST:6379 or "
@@ -196,8 +199,10 @@ def check_outputs(args: argparse.Namespace) -> None:
 
 def output_paths(args: argparse.Namespace, names: list[str]) -> dict:
     """Where each output of the run goes: {"plots": {name: png}, "sigma": png or None, "tum": {name: dir},
-    "json": file or None}; raises OSError when one is not writable or two outputs would be the same path."""
+    "json": file or None}; raises OSError when one is not writable or two outputs would be the same path, DataError
+    when one is an input."""
     from vi3_core.eval.plot import sigma_plot_path
+    from vi3_core.paths import check_apart
 
     several = len(names) > 1
     plots, tum, sigma = {}, {}, None
@@ -211,12 +216,25 @@ def output_paths(args: argparse.Namespace, names: list[str]) -> dict:
     files = [*plots.values(), *([sigma] if sigma else []), *([json_out] if json_out else [])]
     for f in files:
         _check_file(f, "--json-out" if f == json_out else "--plot")
+    inputs = [*args.input, *([args.calib] if args.calib else [])]
+    for f in files:  # written over; TUM files are written into their folder, the plots' neighbours untouched
+        check_apart(f, inputs, what="--json-out" if f == json_out else "--plot", relations=("is",))
     resolved = [f.resolve() for f in files]
     dirs = {d.resolve() for d in tum.values()}
     clash = {str(f) for f in resolved if resolved.count(f) > 1 or f in dirs}
     if clash:
         raise OSError(f"two outputs of this run would be the same path: {', '.join(sorted(clash))}")
     return {"plots": plots, "sigma": sigma, "tum": tum, "json": json_out}
+
+
+def _ray_address(text: str) -> str:
+    """``--ray``'s ADDRESS, checked as it is parsed: an input right after ``--ray`` would otherwise be taken for it,
+    and the inputs then said to be missing."""
+    if text and not RAY_ADDRESS.fullmatch(text):  # "": --ray without ADDRESS
+        raise argparse.ArgumentTypeError(f"{text!r} is not a Ray address (auto, local, HOST:PORT or ray://HOST:PORT); "
+                                         "an input right after --ray is taken for its ADDRESS: put --ray after the "
+                                         "inputs, or write --ray=ADDRESS")
+    return text
 
 
 def _positive(text: str) -> int:
@@ -234,30 +252,56 @@ def _non_negative(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Exit status: 0 all written; 2 an input, output or option that cannot be used (nothing evaluated), or a
+    failure part-way (what was computed is written, marked partial); 128 + the signal number when interrupted (what
+    had finished is written, marked partial; nothing when no clip had finished)."""
     # Imported here, not at module level: they pull in torch, and `vi3 --help` should stay fast.
     from vi3_core.errors import Vi3Error
+    from vi3_core.eval import runner
 
-    try:
-        options, backbone, runs, outputs = _prepare(args)
-        interrupted = _evaluate_ray(args, runs, options, backbone) if args.ray is not None else False
-    except (Vi3Error, ValueError, OSError) as exc:
-        print(f"vi3 eval: error: {exc}", file=sys.stderr)
-        return 2
-    if args.ray is None:
-        for item in runs:
-            _evaluate(args, item, backbone, options)
-    obj, text = _combine(args, runs)
-    errors = [f"{r.name}: {r.error}" for r in runs if r.error] + _write_outputs(args, runs, outputs)
-    if errors:
-        obj["partial"], obj["errors"] = True, errors
-        text += "\n\nPARTIAL: " + "; ".join(errors)
-    try:
-        _emit(args, obj, text, outputs["json"])
-    except OSError as exc:
-        errors.append(str(exc))
-    for e in errors:
-        print(f"vi3 eval: error: {e}", file=sys.stderr)
-    return 128 + signal.SIGINT if interrupted else 2 if errors else 0
+    with interrupts.trapped() as trap:
+        try:
+            options, backbone, runs, outputs = _prepare(args)
+        except KeyboardInterrupt:
+            print(f"vi3 eval: interrupted by {trap.name or 'SIGINT'} before any clip was evaluated; nothing was "
+                  "written", file=sys.stderr)
+            return trap.status if trap.signum is not None else 128 + signal.SIGINT
+        except (Vi3Error, ValueError, OSError) as exc:
+            print(f"vi3 eval: error: {exc}", file=sys.stderr)
+            return 2
+        try:
+            if args.ray is not None:
+                _evaluate_ray(args, runs, options, backbone)
+            else:
+                for item in runs:
+                    _evaluate(args, item, backbone, options)
+        except KeyboardInterrupt:  # what had finished is written below, marked partial
+            pass
+        except (Vi3Error, ValueError, OSError) as exc:  # no Ray worker could start
+            print(f"vi3 eval: error: {exc}", file=sys.stderr)
+            return 2
+        interrupts.hold()  # the outputs are written whole; a signal from here on is reported after them
+        if trap.raised:
+            for r in runs:
+                if not (r.error or r.evals or r.variants):
+                    r.error = runner.interrupted_note(0, len(r.clips))
+        obj, text = _combine(args, runs)
+        errors = [f"{r.name}: {r.error}" for r in runs if r.error] + _write_outputs(args, runs, outputs)
+        if errors:
+            obj["partial"], obj["errors"] = True, errors
+            text += "\n\nPARTIAL: " + "; ".join(errors)
+        try:
+            _emit(args, obj, text, outputs["json"])
+        except OSError as exc:
+            errors.append(str(exc))
+        for e in errors:
+            print(f"vi3 eval: error: {e}", file=sys.stderr)
+        if trap.signum is not None:
+            kept = ("what had finished is written, marked partial" if trap.raised else
+                    "after the evaluation finished: the outputs are complete")
+            print(f"vi3 eval: interrupted by {trap.name}; {kept}", file=sys.stderr)
+            return trap.status
+        return 2 if errors else 0
 
 
 def _backbone(args: argparse.Namespace):
@@ -326,7 +370,8 @@ def _prepare(args: argparse.Namespace) -> tuple:
 
 
 def _evaluate(args: argparse.Namespace, item: Evaluated, backbone, options) -> None:
-    """Evaluate one input into ``item``; a failure part-way keeps what was computed and names the error."""
+    """Evaluate one input into ``item``; a failure part-way keeps what was computed and names the error, and so does
+    an interruption, which is raised on (``runner.EvaluationInterrupted``)."""
     from vi3_core.errors import Vi3Error
     from vi3_core.eval import runner
 
@@ -342,6 +387,12 @@ def _evaluate(args: argparse.Namespace, item: Evaluated, backbone, options) -> N
             item.evals = runner.evaluate_sequence(seq, backbone, options=options)
     except runner.EvaluationStopped as exc:
         item.evals, item.online, item.error = exc.evals, exc.online, str(exc)
+    except runner.EvaluationInterrupted as exc:
+        item.evals, item.online = exc.evals, exc.online
+        item.error = runner.interrupted_note(len(exc.evals), len(item.clips))
+        if item.evals and not args.ablate:
+            _report(args, item)
+        raise
     except (Vi3Error, ValueError, OSError) as exc:
         item.error = str(exc)
         return
@@ -369,8 +420,8 @@ def _report(args: argparse.Namespace, item: Evaluated) -> None:
 
 
 def _check_ray_args(args: argparse.Namespace) -> None:
-    """ValueError for --ray-* options without --ray, an ADDRESS that is not one (an input taken for it), or a CUDA
-    device without a GPU per task; ClusterUnavailable, saying how to install it, when Ray is missing."""
+    """ValueError for --ray-* options without --ray, or a CUDA device without a GPU per task (the ADDRESS is checked
+    by ``_ray_address``); ClusterUnavailable, saying how to install it, when Ray is missing."""
     per_task = [f"--ray-{kind}-per-task" for kind, v in (("cpus", args.ray_cpus_per_task),
                                                          ("gpus", args.ray_gpus_per_task)) if v is not None]
     if args.ray is None:
@@ -380,17 +431,15 @@ def _check_ray_args(args: argparse.Namespace) -> None:
     from vi3_core.eval.distributed import import_ray
 
     import_ray()
-    if args.ray and not RAY_ADDRESS.fullmatch(args.ray):
-        raise ValueError(f"--ray {args.ray}: not a Ray address (auto, local, HOST:PORT or ray://HOST:PORT); an input "
-                         "right after --ray is taken for its ADDRESS: put --ray after the inputs")
     if args.device.startswith("cuda") and not args.ray_gpus_per_task:
         raise ValueError(f"--device {args.device} with --ray needs --ray-gpus-per-task > 0 (Ray gives a worker only "
                          "the GPUs it reserves)")
 
 
-def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, backbone) -> bool:
+def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, backbone) -> None:
     """Evaluate every input on Ray workers (``vi3_core.eval.distributed``) into ``runs``, as ``_evaluate`` does one
-    by one; True when Ctrl-C stopped it. Raises ClusterUnavailable when no worker can start."""
+    by one (a signal stops the workers: what had finished is kept, the rest named as interrupted). Raises
+    ClusterUnavailable when no worker can start."""
     import dataclasses
 
     from tqdm import tqdm
@@ -402,6 +451,7 @@ def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, back
     jobs = [distributed.Job(os.path.abspath(r.path), r.name, opts, tuple(r.clips), chained=_chained(args))
             for r in runs for opts in variants.values()]
     connected = distributed.connect(args.ray or None)
+    interrupts.reinstall()  # ray.init replaces the SIGTERM handler with one that exits at once
     try:
         with tqdm(total=sum(len(j.clips) for j in jobs), unit="clip", desc="eval (ray)",
                   disable=not options.progress) as bar:
@@ -429,7 +479,6 @@ def _evaluate_ray(args: argparse.Namespace, runs: list[Evaluated], options, back
             item.evals, item.online = parts[""].evals, parts[""].online
         if item.evals or item.online is not None or any(item.variants.values()):
             _report(args, item)
-    return ran.interrupted
 
 
 def _combine(args: argparse.Namespace, runs: list[Evaluated]) -> tuple[dict, str]:

@@ -10,7 +10,9 @@ gives identical image bytes and IMU values.
 
 Everything is written into a hidden ``OUT/.vi3-generating.<pid>.*`` folder, a block of time at a time (memory
 does not grow with the length), and moved into place only when complete: an error, Ctrl-C or SIGTERM leaves no
-partial output, and a later run removes such folders left by runs that were killed.
+partial output, and a later run removes such folders left by runs that were killed. One run at a time writes OUT
+(a second fails at once, naming the first), and a run that would not fit in the free disk space is refused before it
+starts.
 """
 
 from __future__ import annotations
@@ -18,15 +20,15 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # vi3_core is imported where used: the CLI loads only what the command it runs needs
     from vi3_core.dataset.generate import Written
+
+from vi3_ros import interrupts
 
 OUTPUTS = ("asl", "ros1.bag", "mcap", "camchain-imucam.yaml")
 
@@ -61,53 +63,79 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def make_bag(out, spec, *, overwrite: bool = False, workers: int = 2) -> tuple[dict[str, float], Written]:
     """Write the three forms of the sequence ``spec`` (a ``SequenceSpec``) into ``out``; returns the seconds each
-    stage took and what ``write_sequence`` reports. Raises DataError for an output that cannot be written."""
+    stage took and what ``write_sequence`` reports. Raises DataError for an output that cannot be written: a file,
+    outputs already there (without ``overwrite``), another run writing it (``OutputLock``), a folder that is or holds
+    the recording to follow, or too little free space (``check_space``)."""
     from vi3_core.dataset.calib import write_kalibr_camchain
     from vi3_core.dataset.generate import staging_dir, write_sequence
     from vi3_core.errors import DataError
+    from vi3_core.paths import check_apart
     from vi3_ros.io.convert import convert_to_rosbag2
+    from vi3_ros.io.output_lock import OutputLock
     from vi3_ros.io.ros1 import Ros1BagWriter
     from vi3_ros.io.topics import IMAGE_TOPIC
 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise DataError(f"{out}: is a file; make-bag writes a folder")
-    existing = [name for name in OUTPUTS if (out / name).exists()]
-    if existing and not overwrite:
-        raise DataError(f"{out}: already holds {', '.join(existing)}; pass --overwrite to replace them")
-    created = not out.exists()
-    stage = staging_dir(out)
-    times = {}
-    try:
-        t = time.perf_counter()
-        with Ros1BagWriter(stage / "ros1.bag") as bag:
-            written = write_sequence(stage / "asl" / "mav0", spec, workers=workers, on_block=lambda b: bag.write(
-                b.cam_ns, b.images.__getitem__, b.imu_ns, b.imu, b.gt_ns, b.T_WB))
-        times["asl_and_ros1_s"] = time.perf_counter() - t
-        t = time.perf_counter()
-        convert_to_rosbag2(stage / "ros1.bag", stage / "mcap", storage="mcap")
-        times["mcap_s"] = time.perf_counter() - t
-        write_kalibr_camchain(written.calib, stage / "camchain-imucam.yaml", rostopic=IMAGE_TOPIC)
-        for name in OUTPUTS:
-            target = out / name
-            if target.is_dir():
-                shutil.rmtree(target)
-            elif target.exists():
-                target.unlink()
-            os.rename(stage / name, target)
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
+    if spec.from_euroc is not None:
+        check_apart(out, [spec.from_euroc], what="make-bag output")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out, what="make-bag output"):
+        existing = [name for name in OUTPUTS if (out / name).exists()]
+        if existing and not overwrite:
+            raise DataError(f"{out}: already holds {', '.join(existing)}; pass --overwrite to replace them")
+        check_space(out, spec)
+        created = not out.exists()
+        stage = staging_dir(out)
+        times = {}
+        try:
+            t = time.perf_counter()
+            with Ros1BagWriter(stage / "ros1.bag") as bag:
+                written = write_sequence(stage / "asl" / "mav0", spec, workers=workers, on_block=lambda b: bag.write(
+                    b.cam_ns, b.images.__getitem__, b.imu_ns, b.imu, b.gt_ns, b.T_WB))
+            times["asl_and_ros1_s"] = time.perf_counter() - t
+            t = time.perf_counter()
+            convert_to_rosbag2(stage / "ros1.bag", stage / "mcap", storage="mcap")
+            times["mcap_s"] = time.perf_counter() - t
+            write_kalibr_camchain(written.calib, stage / "camchain-imucam.yaml", rostopic=IMAGE_TOPIC)
+            interrupts.hold()  # the outputs are moved into place whole: a signal now is reported after the move
+            for name in OUTPUTS:
+                target = out / name
+                if target.is_dir():
+                    shutil.rmtree(target)
+                elif target.exists():
+                    target.unlink()
+                os.rename(stage / name, target)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+            if created and out.is_dir() and not any(out.iterdir()):
+                out.rmdir()
     return times, written
 
 
-class _Terminated(BaseException):
-    """SIGTERM as an exception, so that cleanup runs (BaseException: no library's ``except Exception`` eats it)."""
+#: Bytes make-bag writes per camera frame, in units of its raw mono8 image (width x height): the image in the ROS 1
+#: bag and again in the MCAP, its PNG (about 0.55 on rendered scenes) and, with depth, the depth PNG (about 0.3).
+#: The IMU and ground-truth rows are small beside them.
+BYTES_PER_PIXEL = 2.6
+DEPTH_BYTES_PER_PIXEL = 0.4
 
 
-def _raise_terminated(signum, frame) -> None:
-    raise _Terminated(signal.Signals(signum).name)
+def check_space(out: Path, spec) -> None:
+    """DataError, before anything is written, when the file system of ``out`` has less free space than a generated
+    sequence ``spec`` needs (an estimate; a sequence rendered along a recording is bounded by it and not checked)."""
+    from vi3_core.dataset.generate import CAM_PERIOD_NS, EUROC_CAM0
+    from vi3_core.errors import DataError
+
+    if spec.from_euroc is not None:
+        return
+    w, h = EUROC_CAM0.size
+    frames = spec.seconds * 1e9 / CAM_PERIOD_NS + 1
+    needed = frames * w * h * (BYTES_PER_PIXEL + (DEPTH_BYTES_PER_PIXEL if spec.with_depth else 0.0))
+    free = shutil.disk_usage(next(p for p in (out, *out.parents) if p.exists())).free
+    if needed > free:
+        raise DataError(f"{out}: {spec.seconds:g} s of sequence need about {needed / 1e9:.3g} GB, and its file system "
+                        f"has {free / 1e9:.3g} GB free; choose fewer --seconds (or --no-depth) or another folder")
 
 
 def _spec(args: argparse.Namespace):
@@ -134,24 +162,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"vi3 make-bag: error: {reason}", file=sys.stderr)
         return code
 
-    main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _raise_terminated) if main_thread else None
     t0 = time.perf_counter()
-    try:
-        times, written = make_bag(args.out, _spec(args), overwrite=args.overwrite)
-    except DataError as err:
-        return fail(str(err))
-    except OSError as err:  # a read-only folder, a full disk, an unreadable recording
-        path = Path(err.filename) if err.filename else Path(args.out)
-        verb = "cannot write" if Path(args.out) in (path, *path.parents) else "cannot read"
-        return fail(f"{verb} {path}: {err.strerror or err}")
-    except (KeyboardInterrupt, _Terminated) as err:
-        name = str(err) or "SIGINT"
-        return fail(f"interrupted by {name}; nothing written (partial output removed)",
-                    128 + int(getattr(signal, name, signal.SIGINT)))
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+    with interrupts.trapped() as trap:  # the first signal unwinds the run, which removes what it wrote
+        try:
+            times, written = make_bag(args.out, _spec(args), overwrite=args.overwrite)
+        except DataError as err:
+            return fail(str(err))
+        except OSError as err:  # a read-only folder, a full disk, an unreadable recording
+            path = Path(err.filename) if err.filename else Path(args.out)
+            verb = "cannot write" if Path(args.out) in (path, *path.parents) else "cannot read"
+            return fail(f"{verb} {path}: {err.strerror or err}")
+        except KeyboardInterrupt:
+            return fail(f"interrupted by {trap.name or 'SIGINT'}; nothing written (partial output removed)",
+                        trap.status if trap.signum is not None else 130)
+        if trap.signum is not None:
+            return fail(f"interrupted by {trap.name} after the outputs were complete in {args.out}", trap.status)
     stages = ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in times.items())
     print(f"wrote {args.out}/asl/mav0, {args.out}/ros1.bag, {args.out}/mcap/ and {args.out}/camchain-imucam.yaml "
           f"in {time.perf_counter() - t0:.1f} s ({stages})")

@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "included (default: every clip, in order, as fast as possible)")
     p.add_argument("--backbone-delay", type=float, metavar="S", help="add S seconds to every clip's processing, to "
                    "emulate a slower model (parameter backbone_delay)")
-    p.add_argument("--force", action="store_true", help="replace an existing OUT (an MCAP file or rosbag2 folder)")
+    p.add_argument("--force", action="store_true", help="replace an existing OUT (an MCAP file or rosbag2 folder); "
+                   "never an input, nor an output another run is writing")
     p.add_argument("--copy-inputs", action="store_true", help="also write the input images and IMU")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -57,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
 
             summary = replay(args.input, args.output, settings=settings_from_args(args), copy_inputs=args.copy_inputs,
                              progress=not args.no_progress and sys.stderr.isatty(), force=args.force,
-                             image_topic=args.image_topic, imu_topic=args.imu_topic, realtime=args.realtime)
+                             image_topic=args.image_topic, imu_topic=args.imu_topic, realtime=args.realtime,
+                             on_note=lambda note: print(f"vi3 replay: {note}", file=sys.stderr))
         except KeyboardInterrupt as exc:  # a ReplayInterrupted says what was kept; before the replay, nothing
             return _interrupted(trap, str(exc) or "nothing was written")
         except Vi3Error as exc:

@@ -9,7 +9,9 @@ the image topic's type is read from the recording.
 
 ``iter_events`` never stops at one bad message: a message that cannot be decoded (or an ASL frame whose PNG is
 missing or corrupt) becomes a ``DropEvent`` naming it, as the node drops such a message and goes on; an input it
-cannot read at all (not a bag, truncated, no image topic) raises DataError.
+cannot read at all (not a bag, truncated, no image topic, an IMU csv that is empty or unsorted) raises DataError.
+It streams: an ASL folder's IMU csv is read row by row and its ground truth not at all, so memory does not grow
+with the length of the recording.
 
 Bags carry no calibration (EuRoC's carry no CameraInfo): pass ``calib=`` (a ``CameraCalib`` or a path to a
 Kalibr camchain-imucam / EuRoC sensor.yaml), or leave a ``*camchain-imucam*.yaml`` next to the bag or inside
@@ -23,6 +25,7 @@ output folder opens as its rosbag2 MCAP. Ground truth from a bag is poses only: 
 from __future__ import annotations
 
 import functools
+import heapq
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -37,10 +40,11 @@ from msg_adapters.imu import imu_to_sample
 from msg_adapters.poses import transform_to_T
 from msg_adapters.stamps import stamp_to_ns
 from msg_adapters.types import full_name, jazzy_types
-from vi3_core.dataset.asl import find_mav0, read_asl
+from vi3_core.dataset.asl import camera_frames, find_mav0, iter_imu, read_asl, read_frame
 from vi3_core.dataset.calib import CameraCalib, load_calib
 from vi3_core.dataset.sequence import GroundTruthTrack, Sequence
 from vi3_core.errors import DataError
+from vi3_core.paths import missing_reason
 from vi3_core.types import ImuSamples
 from vi3_ros.io import topics
 
@@ -138,7 +142,7 @@ def resolve_input(path) -> tuple[Path, str]:
             raise DataError(f"{err}; nor a rosbag2 directory (no metadata.yaml)") from None
         return path, "asl"
     if not path.exists():
-        raise DataError(f"{path}: does not exist")
+        raise DataError(f"{path}: {missing_reason(path)}")
     if path.suffix == ".bag":
         return path, "rosbag1"
     if path.suffix == ".mcap":
@@ -171,6 +175,9 @@ def choose_topics(path: Path, available: dict[str, str], want: dict[str, TopicRe
             topic = req.explicit
         else:
             preferred = req.preferred if req.preferred is not None else default
+            if role in _REQUIRED and preferred in available and preferred not in cands:
+                raise DataError(f"{path}: topic {preferred!r} has type {available[preferred]}, not "
+                                f"{' or '.join(types)}; {role} topics: {listing}; choose one with {_option(role)}")
             topic = preferred if preferred in cands else cands[0] if len(cands) == 1 else None
         if topic is None and role in _REQUIRED:
             what = f"several {role} topics: {listing}; choose one with {_option(role)}" if cands else \
@@ -282,23 +289,42 @@ def iter_events(path, *, image: TopicRequest = TopicRequest(), imu: TopicRequest
     ``sensor_msgs/CameraInfo`` messages of that topic, with ``tf_static`` those of ``/tf_static``, come in the same
     stream where the recording has them (an ASL folder has neither: its calibration is ``cam0/sensor.yaml``)."""
     path, kind = resolve_input(path)
-    if kind != "asl":
-        want = {"image": image, "imu": imu}
-        if camera_info_topic:
-            want["camera_info"] = TopicRequest(explicit=camera_info_topic)
-        if tf_static:
-            want["tf_static"] = TopicRequest(explicit=topics.TF_STATIC_TOPIC)
-        yield from _events(path, kind, want)
+    if kind == "asl":
+        _check_no_topics(path, image=image.explicit, imu=imu.explicit)
+        yield from _asl_events(path)
         return
-    seq = read_asl(path)
-    for ns, stream, i in merge_by_time(seq.stamps_ns, seq.imu_ns):
-        if stream == 1:
-            yield ImuEvent(ns * 1e-9, ns, seq.imu.gyro[i], seq.imu.accel[i])
+    want = {"image": image, "imu": imu}
+    if camera_info_topic:
+        want["camera_info"] = TopicRequest(explicit=camera_info_topic)
+    if tf_static:
+        want["tf_static"] = TopicRequest(explicit=topics.TF_STATIC_TOPIC)
+    yield from _events(path, kind, want)
+
+
+def _check_no_topics(path: Path, **explicit: str | None) -> None:
+    """DataError when a topic was named for an ASL folder, which has files, not topics (never ignored silently)."""
+    named = [f"{_option(role)} {topic}" for role, topic in explicit.items() if topic is not None]
+    if named:
+        raise DataError(f"{', '.join(named)}: {path} is an ASL folder, which has no topics (its camera is cam0/, "
+                        "its IMU imu0/); leave the option out")
+
+
+def _asl_events(path: Path) -> Iterator[Event]:
+    """An ASL folder's frames and IMU samples merged by stamp (ties: the frame first), the IMU csv streamed."""
+    mav0 = find_mav0(path)
+    frames = camera_frames(mav0)
+    ns, files = frames if frames is not None else (np.zeros(0, np.int64), [])
+    cams = ((int(t), 0, f) for t, f in zip(ns.tolist(), files))
+    imus = ((t, 1, gyro, accel) for t, gyro, accel in iter_imu(mav0))
+    for item in heapq.merge(cams, imus, key=lambda e: e[:2]):
+        t = item[0]
+        if item[1] == 1:
+            yield ImuEvent(t * 1e-9, t, item[2], item[3])
             continue
         try:
-            yield ImageEvent(ns * 1e-9, ns, seq.image(i))
+            yield ImageEvent(t * 1e-9, t, read_frame(item[2]))
         except DataError as err:  # a missing or corrupt PNG: that frame is dropped, as a bad message would be
-            yield DropEvent("image_malformed", ns, str(err))
+            yield DropEvent("image_malformed", t, str(err))
 
 
 def find_calib(path) -> Path | None:
@@ -324,6 +350,7 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     if isinstance(calib, (str, Path)):
         calib = load_calib(calib)
     if kind == "asl":
+        _check_no_topics(path, image=image_topic, imu=imu_topic)
         seq = read_asl(path)
         if calib is not None:
             seq.calib = calib

@@ -13,6 +13,10 @@ forward is exactly the classical result and test-time refinement can move poses 
 Scale is normalised the way VGGT normalises its training targets: the confidence-weighted mean distance of the
 dense points of all frames from the first camera centre is 1 (``metric`` is False).
 
+Frames whose long side exceeds ``max_side`` (1024 px) are first shrunk to it (area averaging): the tracker's
+windows, corner spacing and pyramid are sized for frames of EuRoC's size (752x480), and at 4512x2880 its tracks
+failed (every clip a "backbone failure") while the plane sweep at a quarter of the frame took 3 GB.
+
 A clip the geometry cannot be recovered from (too few tracks, no image motion, rotation only) is not an error:
 the inputs carry ``status`` (``ok`` | ``few_features`` | ``stationary`` | ``no_parallax``) and a ``reason``,
 the confidence is zero everywhere, depth is a constant 1, translations are zero and rotations are those of a
@@ -31,7 +35,7 @@ import numpy as np
 import torch
 
 from vi3_core import so3_torch
-from vi3_core.backbones._hub import check_clip, resize_crop
+from vi3_core.backbones._hub import check_clip, resize_crop, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
@@ -73,6 +77,18 @@ class ClassicalInputs(BackboneInputs):
     diagnostics: dict = field(default_factory=dict)
 
 
+def _shrunk(images: np.ndarray, K: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray]:
+    """``images`` [n,H,W(,3)] uint8 and their K [3,3] (pixels), shrunk uniformly (area averaging) so that the long
+    side is ``max_side`` when it is longer; else unchanged."""
+    H, W = images.shape[1:3]
+    s = max_side / max(H, W)
+    if s >= 1.0:
+        return images, K
+    w, h = max(int(round(W * s)), 1), max(int(round(H * s)), 1)
+    small = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in images])
+    return small, scaled_K(K, w / W, h / H)
+
+
 def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: float) -> tuple[float, float]:
     """(near, far) of the plane sweep: the 1st and 99th percentiles of the z-depths of the sparse points in the
     views that see them (``visible`` [m,n]; ``K`` [3,3] of the tracked images), widened by ``margin``. One range
@@ -86,7 +102,8 @@ def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: 
 class ClassicalBackbone(Backbone):
     """Classical multi-view geometry behind the backbone contract (see the module docstring).
 
-    Options (keyword-only): ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120);
+    Options (keyword-only): ``max_side`` px, the longest side a frame is worked on at (larger ones are shrunk
+    first); ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120);
     ``max_features`` tracked corners per frame; ``n_depths``, ``n_sources``, ``best_k``, ``window``: plane-sweep
     settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly; ``threads``: Python
     threads that sweep reference frames concurrently (None: torch's intra-op thread count when the clip comes, the
@@ -108,11 +125,13 @@ class ClassicalBackbone(Backbone):
     ttr_lr = 1e-4
 
     def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
-                 downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24, n_sources: int = 2,
-                 best_k: int = 2, window: int = 7, bundle_adjust: bool = True, threads: int | None = None) -> None:
+                 max_side: int = 1024, downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24,
+                 n_sources: int = 2, best_k: int = 2, window: int = 7, bundle_adjust: bool = True,
+                 threads: int | None = None) -> None:
         super().__init__(device=device, dtype=dtype)
-        if downscale < 1:
-            raise ValueError(f"downscale must be >= 1, got {downscale}")
+        if downscale < 1 or max_side < 64:
+            raise ValueError(f"downscale must be >= 1 and max_side >= 64, got {downscale} and {max_side}")
+        self.max_side = max_side
         self.downscale = downscale
         self.max_features = max_features
         if threads is not None and threads < 1:
@@ -155,6 +174,8 @@ class ClassicalBackbone(Backbone):
 
     def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int) -> ClassicalInputs:
         images, K = check_clip(images, K)
+        src_hw = images.shape[1:3]
+        images, K = _shrunk(images, K, self.max_side)
         n, H, W = images.shape[:3]
         h, w = self.working_size(H, W)
         dev, f32 = self.device, torch.float32
@@ -194,7 +215,7 @@ class ClassicalBackbone(Backbone):
             depth, conf = torch.ones(n, h, w, device=dev), torch.zeros(n, h, w, device=dev)
         dt = self.dtype
         inputs = ClassicalInputs(
-            images=img.to(dt), K=K_t.to(dt), src_hw=(H, W),
+            images=img.to(dt), K=K_t.to(dt), src_hw=src_hw,
             base_R_wc=R.to(dt), base_t_wc=t.to(dt), base_depth=depth.to(dt), base_conf=conf.to(dt),
             corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
             diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers})

@@ -1,0 +1,76 @@
+"""``vi3 calib``: a generated flight whose calibration file has the camera mount turned by 3 deg and a 20 ms
+timeshift is run through the node's pipeline with the embedded classical backbone; the YAML it prints is a Kalibr
+camchain that loads, and it is closer to the truth than the file it was given, in the parts it says it corrected."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from vi3_core import so3
+from vi3_core.dataset.calib import load_calib, write_kalibr_camchain
+from vi3_core.dataset.generate import cached_sequence
+from vi3_ros import cli
+
+pytestmark = pytest.mark.slow  # replays 10 s of a generated flight with the classical backbone
+
+
+@pytest.fixture(scope="module")
+def flight(cache_dir):
+    return cached_sequence(cache_dir, seconds=10.0, seed=0, with_depth=False)  # as test_eval_inputs'
+
+
+def _wrong(flight, path, *, rotation_deg=(0.0, 3.0, 0.0), timeshift=-0.020):
+    """The flight's calibration with the mount turned back by ``rotation_deg`` about the body axes and a wrong
+    ``timeshift_cam_imu`` (the truth is 0), written as Kalibr YAML to ``path``."""
+    truth = load_calib(flight / "mav0" / "cam0" / "sensor.yaml")
+    T = truth.T_BC.copy()
+    T[:3, :3] = so3.exp(-np.radians(rotation_deg)) @ T[:3, :3]
+    write_kalibr_camchain(dataclasses.replace(truth, T_BC=T, time_offset=timeshift), path)
+    return truth
+
+
+def _angle_deg(a, b) -> float:
+    return float(np.degrees(so3.angle(a[:3, :3].T @ b[:3, :3])))
+
+
+def test_calib_prints_a_kalibr_file_closer_to_the_truth_than_the_one_given(flight, tmp_path, capsys):
+    truth = _wrong(flight, tmp_path / "wrong.yaml")
+    given = load_calib(tmp_path / "wrong.yaml")
+    out = tmp_path / "fixed.yaml"
+    assert cli.main(["calib", str(flight), "--calib", str(tmp_path / "wrong.yaml"), "-o", str(out),
+                     "--no-progress"]) == 0
+    text = out.read_text()
+    comments = [line for line in text.splitlines() if line.startswith("#")]
+    fixed = load_calib(out)
+    assert "cam0" in yaml.safe_load(text)
+    assert "the configuration is off" in " ".join(comments), comments
+    corrected_rotation = "T_cam_imu: rotation corrected" in comments
+    corrected_offset = "s corrected" in " ".join(comments)
+    assert corrected_rotation or corrected_offset, comments
+    if corrected_rotation:
+        assert _angle_deg(fixed.T_BC, truth.T_BC) < 0.5 < _angle_deg(given.T_BC, truth.T_BC), comments
+    else:
+        assert np.array_equal(fixed.T_BC, given.T_BC)
+    if corrected_offset:
+        assert abs(fixed.time_offset - truth.time_offset) < 0.004, comments
+    else:
+        assert fixed.time_offset == given.time_offset
+    assert np.array_equal(fixed.K, given.K) and np.array_equal(fixed.T_BC[:3, 3], given.T_BC[:3, 3])
+    assert capsys.readouterr().out == ""  # the YAML went to --output only
+
+
+def test_calib_json_and_a_refused_output(flight, tmp_path, capsys):
+    _wrong(flight, tmp_path / "wrong.yaml", rotation_deg=(0.0, 0.0, 0.0), timeshift=0.0)
+    args = ["calib", str(flight), "--calib", str(tmp_path / "wrong.yaml")]
+    assert cli.main([*args, "--json", "--no-progress"]) in (0, 1)
+    obj = json.loads(capsys.readouterr().out)
+    assert obj["off_by"] == "" and obj["clips"] > 0 and len(obj["corrected_T_cam_imu"]) == 4, obj
+    assert abs(obj["corrected_timeshift_cam_imu_s"]) < 0.004, obj
+    # an output onto the calibration it corrects is refused before anything runs
+    assert cli.main([*args, "-o", str(tmp_path / "wrong.yaml"), "--force"]) == 2
+    assert "would destroy the input" in capsys.readouterr().err
