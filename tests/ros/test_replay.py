@@ -105,7 +105,8 @@ def _statuses(msgs: dict[str, list], topic: str = "/vi3_node/status"):
 
 
 #: The fault and plumbing tests below check what replay does with a clip, not which clips may claim a scale (the
-#: error model's gate, tests/core/test_init.py and tests/core/test_online.py): on 2.5 s bags of two clips the gate stays open.
+#: error model's gate, tests/core/test_init.py and tests/core/test_online.py): on 2.5 s bags of two clips the gate
+#: stays open.
 OPEN_GATE = {"max_scale_sigma": 10.0}
 
 
