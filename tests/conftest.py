@@ -1,12 +1,16 @@
 """Shared fixtures: the ../shared folder (skipped with a reason when absent; VI3_SHARED points to another one) and a
-cache for generated data."""
+cache for generated data. The test folders are importable from each other (a test module may use another's helpers,
+whichever file or folder pytest is given)."""
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+sys.path[:0] = [str(d) for d in sorted(Path(__file__).parent.iterdir()) if d.is_dir() and d.name != "__pycache__"]
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("VI3_SHARED", REPO.parent / "shared"))

@@ -126,7 +126,8 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
                    "reason": e.reason, "mode": e.mode,
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
                    "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
-                   "scale_rel_sigma": rel_sigma(e)} for e in evals],
+                   "scale_rel_sigma": rel_sigma(e),
+                   **({"rig": e.calibration.as_dict()} if e.calibration is not None else {})} for e in evals],
     })
 
 
