@@ -194,7 +194,7 @@ def read_imu(mav0: Path) -> tuple[np.ndarray, ImuSamples]:
     path = mav0 / "imu0" / "data.csv"
     ns, cells = read_csv(path, columns=7)
     vals = _floats(cells, path)
-    return ns, ImuSamples(ns * 1e-9, vals[:, :3], vals[:, 3:])
+    return ns, ImuSamples(ns * 1e-9, vals[:, :3], vals[:, 3:], t_ns=ns)
 
 
 def read_groundtruth(mav0: Path) -> GroundTruthTrack | None:
