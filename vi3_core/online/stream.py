@@ -89,6 +89,16 @@ class StreamEstimator:
         self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options) \
             if self.options.online else None
 
+    def reset(self, reason: str) -> None:
+        """Forget the stream (``reason``: time went back, so the window, its biases, the kept IMU and the odom state
+        no longer hold): the next clip starts as the first did, except that the trajectory's segments count on and
+        the next chained clip starts a new one (``OnlineEstimator.continue_after``). Nothing to forget without
+        ``online``."""
+        if self.window is not None:
+            previous = self.window.trajectory
+            self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options)
+            self.window.continue_after(previous, reason)
+
     @property
     def trajectory(self) -> Trajectory:
         """The chained odom trajectory (empty without ``online``)."""
