@@ -293,11 +293,11 @@ def test_imu_at_200_hz_beside_a_busy_worker_and_a_busy_process_arrives_whole(cac
     asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
     calib = tmp_path / "cam0.yaml"
     write_euroc_sensor_yaml(EUROC_CAM0, calib)
+    t_start = time.time_ns()
     proc = node_process(calib, "-p", "max_scale_sigma:=10.0")
     time.sleep(6.0)
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
-        t_start = time.time_ns()
         sent = _feed(asl, types, pub_img, pub_imu, seconds=12.0)
         time.sleep(3.0)  # the last periodic summary counts every sample
         t_end = time.time_ns()
@@ -312,7 +312,7 @@ def test_imu_at_200_hz_beside_a_busy_worker_and_a_busy_process_arrives_whole(cac
     last = summaries[-1][1].values
     assert int(last["imu_samples"]) == sent and "drop_imu_lost" not in last, (sent, last)
     assert int(last["worker_processed"]) >= 4, last  # the worker was busy all along
-    assert all(t_start - 2 * 10**9 < t < t_end for t, _ in summaries), [t for t, _ in summaries]
+    assert all(t_start < t < t_end for t, _ in summaries), (t_start, [t for t, _ in summaries], t_end)
 
 
 @pytest.mark.parametrize("args", [
