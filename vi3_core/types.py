@@ -40,6 +40,8 @@ class ImuSamples:
     t: [M] float64 s, gyro: [M,3] rad/s, accel: [M,3] m/s^2 (specific force, so +9.81 up at rest).
     orientation: optional [M,4] quaternion (x, y, z, w) of B in a gravity-aligned world frame (z up), as
     reported in ``sensor_msgs/Imu.orientation`` by many flight controllers; NaN rows where absent.
+    t_ns: optional [M] int64, the stamps as they came (integer ns), where they came as ns: float64 at epoch magnitudes
+    resolves only ~0.24 us, so time differences that are compared with a limit use these (``validate.check_imu``).
     Construction does not validate values (NaN, gaps, order): ``vi3_core.init.validate_imu`` does, so that
     bad data becomes a status rather than an exception.
     """
@@ -48,17 +50,21 @@ class ImuSamples:
     gyro: np.ndarray
     accel: np.ndarray
     orientation: np.ndarray | None = None
+    t_ns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=np.float64).reshape(-1)
         object.__setattr__(self, "t", t)
+        if self.t_ns is not None:
+            object.__setattr__(self, "t_ns", np.asarray(self.t_ns, dtype=np.int64).reshape(-1))
         object.__setattr__(self, "gyro", _f64(self.gyro, (3,), "ImuSamples.gyro"))
         object.__setattr__(self, "accel", _f64(self.accel, (3,), "ImuSamples.accel"))
         if self.orientation is not None:
             object.__setattr__(self, "orientation", _f64(self.orientation, (4,), "ImuSamples.orientation"))
-        for name in ("gyro", "accel") + (("orientation",) if self.orientation is not None else ()):
-            if len(getattr(self, name)) != len(t):
-                raise DataError(f"ImuSamples.{name} has {len(getattr(self, name))} rows for {len(t)} stamps")
+        for name in ("gyro", "accel", "orientation", "t_ns"):
+            rows = getattr(self, name)
+            if rows is not None and len(rows) != len(t):
+                raise DataError(f"ImuSamples.{name} has {len(rows)} rows for {len(t)} stamps")
 
     def __len__(self) -> int:
         return len(self.t)
@@ -69,24 +75,27 @@ class ImuSamples:
         return self.select(slice(*window_bounds(self.t, t0, t1, margin)))
 
     def shifted(self, dt: float) -> ImuSamples:
-        """The samples with their stamps moved by ``dt`` s (onto another clock)."""
-        return ImuSamples(self.t + dt, self.gyro, self.accel, self.orientation)
+        """The samples with their stamps moved by ``dt`` s (onto another clock; ``t_ns`` by dt rounded to ns)."""
+        t_ns = None if self.t_ns is None else self.t_ns + round(dt * 1e9)
+        return ImuSamples(self.t + dt, self.gyro, self.accel, self.orientation, t_ns)
 
     def select(self, idx) -> ImuSamples:
         """Rows ``idx`` (slice, index array or boolean mask)."""
         ori = None if self.orientation is None else self.orientation[idx]
-        return ImuSamples(self.t[idx], self.gyro[idx], self.accel[idx], ori)
+        t_ns = None if self.t_ns is None else self.t_ns[idx]
+        return ImuSamples(self.t[idx], self.gyro[idx], self.accel[idx], ori, t_ns)
 
     @staticmethod
     def concatenate(parts: list[ImuSamples]) -> ImuSamples:
-        """Rows of ``parts`` in order; orientation kept only if every part has it."""
+        """Rows of ``parts`` in order; orientation and t_ns kept only if every part has them."""
         if not parts:
             return ImuSamples(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
-        ori = None
-        if all(p.orientation is not None for p in parts):
-            ori = np.concatenate([p.orientation for p in parts])
-        return ImuSamples(np.concatenate([p.t for p in parts]), np.concatenate([p.gyro for p in parts]),
-                          np.concatenate([p.accel for p in parts]), ori)
+
+        def joined(name: str) -> np.ndarray | None:
+            arrays = [getattr(p, name) for p in parts]
+            return None if any(a is None for a in arrays) else np.concatenate(arrays)
+
+        return ImuSamples(joined("t"), joined("gyro"), joined("accel"), joined("orientation"), joined("t_ns"))
 
 
 @dataclass(frozen=True)

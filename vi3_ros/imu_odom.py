@@ -1,4 +1,5 @@
-"""``~/odom/imu``: odometry at IMU rate between clips, shared by the node and replay (``vi3_ros.pipeline``).
+"""``~/odom/imu``: odometry at IMU rate between clips, shared by the node and replay (``vi3_ros.pipeline``), and the
+covariances of both odometry topics (``covariances``; ``chained_covariances`` for ``~/odom``).
 
 After each chained clip the Pipeline calls ``restart`` with the new odom state and the IMU recorded since its last
 frame (the worker thread; in the node the clip lands seconds after its frames, so the propagation catches up first);
@@ -9,11 +10,13 @@ the IMU's rate or more), stamped with the sample's own stamp. Pose covariance ov
 odom is not modelled); twist covariance in ``base_frame``: the velocity sigma and the gyro's white noise per sample.
 Nothing is published before the first chained clip, nor once the propagation stopped (an IMU gap longer than
 ``max_imu_gap``, a non-finite sample, ``online_max_bridge`` s without a chained clip, or a horizontal position 1-sigma
-above ``imu_odom_max_sigma``): ``status`` says why.
+above ``imu_odom_max_sigma``): ``status`` says why. Samples and states carry the clip buffer's epoch: when time went
+back (a newer epoch) the propagation is forgotten, and a state chained from a clip of an older epoch is ignored.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -23,7 +26,7 @@ import numpy as np
 from msg_adapters.poses import odometry
 from msg_adapters.types import MessageTypes
 from vi3_core.init.options import InitOptions
-from vi3_core.online import OdomState
+from vi3_core.online import OdomState, Trajectory
 from vi3_core.online.propagator import ImuPropagator, PropagatedStates, PropagationSigmas, propagation_sigmas
 from vi3_core.types import ImuSamples
 from vi3_ros.settings import Settings
@@ -48,6 +51,31 @@ def covariances(s: PropagationSigmas, options: InitOptions, sample_dt: float) ->
     return pose, twist
 
 
+#: rad; the yaw 1-sigma of ``~/odom``: yaw in odom is unobservable (the first clip's is arbitrary), so it is not known.
+ODOM_YAW_SIGMA = math.pi
+#: the smallest 1-sigma (m, rad, m/s or rad/s) a diagonal entry of ``~/odom``'s covariances states: none is certain.
+SIGMA_FLOOR = 1e-3
+
+
+def chained_covariances(state: OdomState, trajectory: Trajectory, *, options: InitOptions,
+                        sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(pose covariance [6,6] in odom over x, y, z, rot x, rot y, rot z; twist covariance [6,6] in the body frame) of
+    the chained ``state`` at its last frame (``~/odom``), relative to its segment's first frame (the segment's odom
+    origin, exact by definition): ``covariances`` at tau = 0 (roll and pitch: the gravity direction's sigma; velocity:
+    v_sigma; angular rate: the gyro's white noise per ``sample_dt`` s), plus per position axis what the segment's
+    clips and bridges add up to (``trajectory.error_m``, ``trajectory.bridge_var``); yaw ODOM_YAW_SIGMA; every
+    diagonal entry at least SIGMA_FLOOR^2."""
+    s = propagation_sigmas(np.zeros(1), v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
+                           gravity_norm=options.gravity_norm)
+    pose, twist = (c[0] for c in covariances(s, options, sample_dt))
+    idx = np.arange(3)
+    pose[idx, idx] += trajectory.error_m**2 + trajectory.bridge_var
+    pose[5, 5] = ODOM_YAW_SIGMA**2
+    for cov in (pose, twist):
+        np.fill_diagonal(cov, np.maximum(np.diag(cov), SIGMA_FLOOR**2))
+    return pose, twist
+
+
 class ImuOdometry:
     """The IMU-rate odometry of one stream; thread-safe (``restart`` on the worker thread, ``add`` on the input
     thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``settings`` its settings. Lock order: ``restart``
@@ -67,6 +95,7 @@ class ImuOdometry:
         self._state: OdomState | None = None
         self._next_ns: int | None = None  # the next publication is due at the first sample at or after this stamp
         self._last_ns: int | None = None  # the previous sample's stamp
+        self._epoch = 0  # the clip buffer's epoch of the samples and states taken
         self.published = 0
 
     @property
@@ -77,22 +106,26 @@ class ImuOdometry:
                 return "waiting"
             return f"stopped: {self._prop.stopped}" if self._prop.stopped else "running"
 
-    def restart(self, state: OdomState, imu_since: Callable[[float], ImuSamples | None]) -> None:
-        """Start over from a newly chained ``state``, catching up through ``imu_since(t)`` (the samples recorded from
-        at or before t s to the newest; None: none), read while no sample can slip in between."""
+    def restart(self, state: OdomState, imu_since: Callable[[float], ImuSamples | None], epoch: int = 0) -> None:
+        """Start over from a newly chained ``state`` of a clip of buffer ``epoch``, catching up through
+        ``imu_since(t)`` (the samples recorded from at or before t s to the newest; None: none), read while no sample
+        can slip in between; nothing when time went back since that clip."""
         prop = ImuPropagator(state, gravity_norm=self.options.gravity_norm, max_gap_s=self.options.max_imu_gap,
                              max_tau_s=self.max_tau_s)
         with self._lock:
+            if not self._take_epoch(epoch):
+                return
             imu = imu_since(prop.t_c)
             if imu is not None:
                 prop.advance(imu)
             self._prop, self._state = prop, state
 
-    def add(self, stamp_ns: int, gyro, accel) -> None:
-        """One IMU sample (stamp in IMU time, ns; gyro [3] rad/s; accel [3] m/s^2): propagate, and publish when
-        due."""
+    def add(self, stamp_ns: int, gyro, accel, epoch: int = 0) -> None:
+        """One IMU sample (stamp in IMU time, ns; gyro [3] rad/s; accel [3] m/s^2) of buffer ``epoch``: propagate,
+        and publish when due."""
         stamp_ns = int(stamp_ns)
         with self._lock:
+            self._take_epoch(epoch)
             last = self._last_ns
             if last is not None and stamp_ns <= last:
                 return
@@ -114,6 +147,12 @@ class ImuOdometry:
                        child_frame_id=self.child, types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
         self._publish("odom_imu", msg, stamp_ns)
         self.published += 1
+
+    def _take_epoch(self, epoch: int) -> bool:
+        """Move to ``epoch`` when it is newer (time went back: everything is forgotten); False when it is older."""
+        if epoch > self._epoch:
+            self._epoch, self._prop, self._state, self._next_ns, self._last_ns = epoch, None, None, None, None
+        return epoch == self._epoch
 
     def _too_uncertain(self, prop: ImuPropagator, sig: PropagationSigmas, tau: float) -> bool:
         """Whether the newest state's horizontal position 1-sigma (``sig``, ``tau`` s after the chained frame) exceeds

@@ -1,10 +1,18 @@
 """``vi3_node``: the thin rclpy shell around ``vi3_ros.pipeline``.
 
 Only wiring lives here: parameters declared with descriptors from ``vi3_ros.params``, subscriptions with the
-sensor-data QoS (best effort), reliable publishers for ``vi3_ros.outputs.OUTPUTS``, a timer for the Pipeline's
-periodic diagnostics, and callbacks that hand messages to the Pipeline (images and IMU converted with
-``msg_adapters``; CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does). A message that
-cannot be decoded is dropped and counted by the Pipeline (``drop_input``) like every other drop.
+sensor-data QoS (best effort) and queues that hold ``CALLBACK_DELAY_S`` of input, reliable publishers for
+``vi3_ros.outputs.OUTPUTS``, a timer for the Pipeline's periodic diagnostics (stamped, as all /diagnostics, with the
+node's clock), and callbacks that hand messages to the Pipeline (images and IMU converted with ``msg_adapters``;
+CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does). A message that cannot be decoded is
+dropped and counted by the Pipeline (``drop_input``) like every other drop; one that never arrived is counted from the
+gap it leaves in the stamps (``image_lost``, ``imu_lost``).
+
+Parameters are declared with dynamic typing and their range or choices written into the descriptor's
+``additional_constraints``, so that rclpy itself refuses nothing: ``vi3_ros.params.resolve`` checks every value (an
+integer where a float is declared is taken, as users type it) and a bad one ends the node at start with one line
+naming the parameter, the value and the range (exit status 2). A parameter given that the node does not declare (a
+typo in a parameter file or ``-p``) is named in a warning with the closest known name.
 This is the only module that imports rclpy; it uses the API that ROS 2 Humble and Jazzy share.
 Run: ``ros2 run vi3_ros vi3_node --ros-args --params-file config/euroc.yaml`` or ``launch/vi3.launch.py``.
 
@@ -16,6 +24,7 @@ while a clip is in the backbone: the clip's outputs are discarded and the worker
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import sys
@@ -23,10 +32,10 @@ from collections.abc import Callable
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from msg_adapters.errors import drop_reason
 from msg_adapters.image import camera_frame
@@ -38,28 +47,35 @@ from vi3_core.errors import DataError, Vi3Error
 from vi3_ros import interrupts
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
 from vi3_ros.outputs import OUTPUTS
-from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve
-from vi3_ros.pipeline import Pipeline, make_pipeline
+from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve, unknown_parameter
+from vi3_ros.pipeline import MAX_IMU_RATE_HZ, Pipeline, make_pipeline
 from vi3_ros.time_offset import resolve_time_offset
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 TF_STATIC = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SHUTDOWN_WAIT_S = 0.5  # s the worker may take to finish its clip at shutdown
 IMAGE_TYPE_POLL_S = 0.5  # s between looks at the ROS graph for the image topic's type (image_transport auto)
-_PARAM_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-                float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+#: s; the longest the executor may fall behind the input without losing a message: the input queues hold this much.
+#: The worker's backbone shares the interpreter lock with the callbacks: on two cores under ``ros2 launch`` beside a
+#: busy process (load average 3-15) IMU callbacks ran up to 1.4 s behind the samples' schedule, 37 % of them more than
+#: the 25 ms that the sensor-data QoS's queue of 5 holds at 200 Hz.
+CALLBACK_DELAY_S = 5.0
+MAX_CAMERA_RATE_HZ = 30.0  # Hz; the fastest camera the image queue is sized for (a faster one gets less time)
+
+
+def sensor_qos(rate_hz: float) -> QoSProfile:
+    """The sensor-data QoS (best effort, volatile) with a queue of ``CALLBACK_DELAY_S`` of messages at ``rate_hz``."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=math.ceil(rate_hz * CALLBACK_DELAY_S),
+                      reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
 
 def descriptor(p: Param) -> ParameterDescriptor:
-    """The ROS ParameterDescriptor of one parameter declaration (type, description, range, choices)."""
-    d = ParameterDescriptor(name=p.name, type=_PARAM_TYPES[p.type], description=p.description, read_only=True)
-    if p.range is not None and p.type is float:
-        d.floating_point_range = [FloatingPointRange(from_value=float(p.range[0]), to_value=float(p.range[1]))]
-    elif p.range is not None and p.type is int:
-        d.integer_range = [IntegerRange(from_value=int(p.range[0]), to_value=int(p.range[1]), step=1)]
-    if p.choices:
-        d.additional_constraints = "one of: " + ", ".join(p.choices)
-    return d
+    """The ROS ParameterDescriptor of one parameter declaration: description, read-only, and its type and range or
+    choices as text in ``additional_constraints`` (dynamically typed: ``resolve`` checks the value, not rclpy)."""
+    allowed = f"range [{p.range[0]}, {p.range[1]}]" if p.range is not None else \
+        f"one of: {', '.join(p.choices)}" if p.choices else ""
+    return ParameterDescriptor(name=p.name, description=p.description, read_only=True, dynamic_typing=True,
+                               additional_constraints="; ".join(x for x in (p.type.__name__, allowed) if x))
 
 
 class _PublisherSink:
@@ -90,6 +106,9 @@ class Vi3Node(Node):
         super().__init__(NODE_NAME, **node_kwargs)
         for p in PARAMS:
             self.declare_parameter(p.name, p.default, descriptor(p))
+        for name in sorted(self._parameter_overrides):  # from -p, parameter files and parameter_overrides
+            if not self.has_parameter(name):
+                self.get_logger().warning(f"{unknown_parameter(name)} is ignored")
         self.settings = resolve({p.name: self.get_parameter(p.name).value for p in PARAMS})
         if self.settings.inputs.calib_file:  # its timeshift_cam_imu: time_offset unless the parameter says
             self.settings, note = resolve_time_offset(self.settings, load_calib(self.settings.inputs.calib_file))
@@ -97,7 +116,8 @@ class Vi3Node(Node):
                 self.get_logger().warning(note)
         self.types = types = MessageTypes.from_rclpy()
         self.sink = _PublisherSink(self, types)
-        self.pipeline: Pipeline = make_pipeline(self.settings, sink=self.sink, types=types)
+        self.pipeline: Pipeline = make_pipeline(self.settings, sink=self.sink, types=types,
+                                                clock=lambda: self.get_clock().now().nanoseconds)
         inputs = self.settings.inputs
         self.image_topic = self.resolve_topic_name(inputs.image_topic)
         self._image_sub = None
@@ -109,10 +129,10 @@ class Vi3Node(Node):
         else:
             self._subscribe_images(IMAGE_TRANSPORTS[inputs.image_transport][0])
         self.create_subscription(types.get("sensor_msgs/msg/Imu"), inputs.imu_topic, self._on_imu,
-                                 qos_profile_sensor_data)
+                                 sensor_qos(MAX_IMU_RATE_HZ))
         if inputs.camera_info_topic:
             self.create_subscription(types.get("sensor_msgs/msg/CameraInfo"), inputs.camera_info_topic,
-                                     self._on_camera_info, qos_profile_sensor_data)
+                                     self._on_camera_info, sensor_qos(MAX_CAMERA_RATE_HZ))
         if inputs.use_tf_static:
             self.create_subscription(types.get("tf2_msgs/msg/TFMessage"), "/tf_static", self._on_tf_static,
                                      TF_STATIC)
@@ -126,7 +146,7 @@ class Vi3Node(Node):
 
     def _subscribe_images(self, msgtype: str) -> None:
         self._image_sub = self.create_subscription(self.types.get(msgtype), self.image_topic, self._on_image,
-                                                   qos_profile_sensor_data)
+                                                   sensor_qos(MAX_CAMERA_RATE_HZ))
         self.image_type = msgtype
 
     def _learn_image_type(self) -> None:

@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from msg_adapters.camera_info import calib_to_camera_info
 from msg_adapters.diagnostics import DiagStatus, Level
 from msg_adapters.image import depth_to_image
 from msg_adapters.pointcloud import point_cloud2
@@ -24,6 +25,7 @@ from vi3_core.camera import backproject
 from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
 from vi3_core.online.calibration import RigEstimate
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
+from vi3_ros.imu_odom import chained_covariances
 from vi3_ros.settings import Settings
 
 
@@ -38,9 +40,11 @@ class Output:
 OUTPUTS: dict[str, Output] = {
     "poses": Output("~/poses", "geometry_msgs/msg/PoseArray"),
     "depth": Output("~/depth", "sensor_msgs/msg/Image"),
+    "depth_info": Output("~/depth/camera_info", "sensor_msgs/msg/CameraInfo"),
     "points": Output("~/points", "sensor_msgs/msg/PointCloud2"),
     "init_poses": Output("~/init/poses", "geometry_msgs/msg/PoseArray"),
     "init_depth": Output("~/init/depth", "sensor_msgs/msg/Image"),
+    "init_depth_info": Output("~/init/depth/camera_info", "sensor_msgs/msg/CameraInfo"),
     "init_points": Output("~/init/points", "sensor_msgs/msg/PointCloud2"),
     "status": Output("~/status", "diagnostic_msgs/msg/DiagnosticArray"),
     "diagnostics": Output("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
@@ -85,7 +89,8 @@ class ClipPublisher:
         self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
 
     def geometry(self, clip: Clip, geometry: Geometry, *, prefix: str, T_OC1: np.ndarray | None = None) -> None:
-        """Poses, depth, points (and the clip TF) of a result of ``clip`` (its frames' header stamps: ``stamps_ns``);
+        """Poses, depth with its CameraInfo (the intrinsics of the undistorted image at the depth's resolution, no
+        distortion), points (and the clip TF) of a result of ``clip`` (its frames' header stamps: ``stamps_ns``);
         ``prefix`` "init_" for the fast result that cond/ttr refine; with ``T_OC1`` [4,4] (the clip's first camera in
         odom) poses and points are in ``odom_frame``."""
         fr, out, types = self.settings.frames, self.settings.outputs, self.types
@@ -98,6 +103,10 @@ class ClipPublisher:
             s = int(clip.stamps_ns[i])
             self._publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s, frame_id=fr.camera_frame,
                                                            types=types), s)
+            h, w = geometry.depth[i].shape
+            self._publish(prefix + "depth_info", calib_to_camera_info(geometry.K[i], "plumb_bob", np.zeros(5), (w, h),
+                                                                      stamp_ns=s, frame_id=fr.camera_frame,
+                                                                      types=types), s)
         frames = np.arange(geometry.n) if out.points_frames == "all" else np.array([geometry.n - 1])
         pts, conf = cloud_points(geometry, frames, stride=out.points_stride, conf_quantile=out.points_conf_quantile,
                                  max_depth=out.points_max_depth)
@@ -111,15 +120,19 @@ class ClipPublisher:
                           stamp)
 
     def odom(self, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> None:
-        """~/odom (pose and twist of base_frame at the last frame of ``clip``), ~/path (the latest ``path_max_poses``
-        poses of the odom trajectory) and, with ``publish_odom_tf``, TF odom_frame -> base_frame."""
+        """~/odom (pose and twist of base_frame at the last frame of ``clip``, with ``chained_covariances``), ~/path
+        (the latest ``path_max_poses`` poses of the odom trajectory) and, with ``publish_odom_tf``, TF odom_frame ->
+        base_frame."""
         fr, types = self.settings.frames, self.types
         stamp = int(clip.stamps_ns[-1])
         chained = outcome.chained
         T = chained.T_OB[-1]
         gyro = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)])
+        pose_cov, twist_cov = chained_covariances(outcome.state, trajectory, options=self.settings.init,
+                                                  sample_dt=float(np.median(np.diff(clip.imu.t))))
         self._publish("odom", odometry(T, T[:3, :3].T @ chained.v_O[-1], gyro - outcome.state.bg, stamp_ns=stamp,
-                                       frame_id=fr.odom_frame, child_frame_id=fr.base_frame, types=types), stamp)
+                                       frame_id=fr.odom_frame, child_frame_id=fr.base_frame, types=types,
+                                       pose_cov=pose_cov, twist_cov=twist_cov), stamp)
         keep = slice(max(len(trajectory.stamps) - self.settings.outputs.path_max_poses, 0), None)
         # The header stamps of the frames (exact ns), kept for the poses the path still shows.
         self._path_ns.update(zip(clip.stamps.tolist(), clip.stamps_ns.tolist()))

@@ -13,6 +13,7 @@ registry's and the anchoring modes.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -69,7 +70,8 @@ class Param:
                     raise ValueError
                 value = t(value)
             except (TypeError, ValueError):
-                raise DataError(f"parameter {self.name}: expected {t.__name__}, got {value!r}") from None
+                within = f" in [{self.range[0]}, {self.range[1]}]" if self.range is not None else ""
+                raise DataError(f"parameter {self.name}: expected {t.__name__}{within}, got {value!r}") from None
             if self.range is not None and not self.range[0] <= value <= self.range[1]:
                 raise DataError(f"parameter {self.name}: {value} is outside [{self.range[0]}, {self.range[1]}]")
         else:
@@ -167,15 +169,16 @@ PARAMS: tuple[Param, ...] = (
     Param("stride", ClipBufferOptions, "use every stride-th input frame", range=(1, 100)),
     Param("hop", ClipBufferOptions, "input frames between clip starts; 0: clip_length * stride "
             "(non-overlapping)", range=(0, 10000), none_as=0),
-    Param("max_frame_gap", ClipBufferOptions, "s; a larger gap between consecutive frames "
-            "restarts the clip; 0: automatic (1.5 x the median recent frame interval, so one dropped frame restarts)",
-            range=(0.0, 60.0)),
+    Param("max_frame_gap", ClipBufferOptions, "s; a larger gap between consecutive frames restarts the clip (a "
+          "smaller one is bridged: a lost frame a clip needs is replaced by the next); 0: automatic ((stride + 1.5) x "
+          "the median recent frame interval: up to stride frames lost in a row are bridged)", range=(0.0, 60.0)),
     Param("time_offset", ClipBufferOptions, "s; camera-IMU time offset, t_imu = t_cam + "
             "time_offset (Kalibr timeshift_cam_imu)", range=(-1.0, 1.0)),
     Param("imu_buffer", ClipBufferOptions, "IMU samples kept (bounded buffer)",
             range=(16, 1_000_000)),
-    Param("imu_timeout", ClipBufferOptions, "s of camera time a complete clip waits for IMU before "
-            "it is dropped (imu_stalled)", range=(0.001, 60.0)),
+    Param("imu_timeout", ClipBufferOptions, "s of camera time a complete clip waits for IMU while no IMU sample "
+          "arrives before it is dropped (imu_stalled); an IMU that arrives late but keeps arriving is waited for (up "
+          "to max_pending clips)", range=(0.001, 60.0)),
     Param("imu_history", ClipBufferOptions, "s of IMU before the clip kept for the long-window gravity "
             "seed; 0: none", range=(0.0, 60.0)),
     Param("max_pending", ClipBufferOptions, "complete clips waiting for IMU before the oldest is "
@@ -241,6 +244,12 @@ BY_NAME: dict[str, Param] = {p.name: p for p in PARAMS}
 _CLASS_ATTR = {cls: attr for attr, cls in GROUPS.items()}
 
 
+def unknown_parameter(name: str) -> str:
+    """What to say about a parameter name that is not one of ``PARAMS``: the closest known name, if one is close."""
+    close = difflib.get_close_matches(name, BY_NAME, n=1)
+    return f"unknown parameter {name!r}" + (f" (did you mean {close[0]!r}?)" if close else "")
+
+
 def defaults() -> dict[str, Any]:
     """Every parameter at its default (parameter values, e.g. ``hop`` 0)."""
     return {p.name: p.default for p in PARAMS}
@@ -253,7 +262,7 @@ def resolve(overrides: dict[str, Any] | None = None, base: Settings | None = Non
     changes = {}
     for name, value in (overrides or {}).items():
         if name not in BY_NAME:
-            raise DataError(f"unknown parameter {name!r} (known: {', '.join(BY_NAME)})")
+            raise DataError(f"{unknown_parameter(name)}; known: {', '.join(BY_NAME)}")
         p = BY_NAME[name]
         changes[name] = p.field_value(p.check(value))
     try:
@@ -285,7 +294,7 @@ def load_yaml(path: str | Path, *, node: str = NODE_NAME) -> dict[str, Any]:
             params = section["ros__parameters"]
             unknown = [k for k in params if k not in BY_NAME]
             if unknown:
-                raise DataError(f"{path}: unknown parameter {unknown[0]!r}")
+                raise DataError(f"{path}: {unknown_parameter(unknown[0])}")
             return dict(params)
     raise DataError(f"{path}: no '{node}: ros__parameters:' (or '/**') section")
 
@@ -293,8 +302,10 @@ def load_yaml(path: str | Path, *, node: str = NODE_NAME) -> dict[str, Any]:
 def parse_assignment(text: str) -> tuple[str, str]:
     """``"NAME=VALUE"`` (from the command line) -> (name, value text); ``resolve`` checks and converts the value."""
     name, sep, value = text.partition("=")
-    if not sep or name not in BY_NAME:
+    if not sep:
         raise DataError(f"--param {text!r}: expected NAME=VALUE with NAME one of {', '.join(BY_NAME)}")
+    if name not in BY_NAME:
+        raise DataError(f"--param {text!r}: {unknown_parameter(name)}; known: {', '.join(BY_NAME)}")
     return name, value
 
 

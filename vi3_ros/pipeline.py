@@ -9,19 +9,26 @@ Which result a message carries: ``~/poses``, ``~/depth`` and ``~/points`` carry 
 is published first on ``~/init/poses``, ``~/init/depth`` and ``~/init/points``. Every result is described on
 ``~/status`` (key ``result``: init | cond | ttr | none | skipped).
 
-Dropped input messages are counted by reason, exactly, and reported on ``/diagnostics`` by ``publish_diagnostics``
-once per ``diagnostics_period`` (the node's timer; replay in bag time) and in the next clip's status; only the first
-drop of a reason not seen in the current or the previous period is published at once. They are the ``ClipBuffer``'s
-drops, the frames ``add_image`` refuses (``image_unsupported``: not 8-bit mono or RGB; ``image_size_mismatch``: not
-the calibrated size) and the messages the node or replay could not decode (``drop_input``: ``image_malformed``,
-``image_unsupported``, ``imu_malformed``, ...). Every frame of a clip is checked against the calibration again when
-the clip is processed (the calibration may have arrived since): a misfit skips the clip as ``image_size_mismatch``;
-a frame is never stretched to the calibrated size.
+Dropped input messages are counted by reason, exactly, and reported on ``/diagnostics`` by ``publish_diagnostics`` once
+per ``diagnostics_period`` (the node's timer; replay in bag time) and in the next clip's status; only the first drop of
+a reason not seen in the current or the previous period is published at once. /diagnostics is stamped with one clock:
+the node's (``clock``), or in replay the data's own stamps (bag time). They are the ``ClipBuffer``'s drops (lost frames
+and IMU samples among them, counted from the stamps), the frames ``add_image`` refuses (``image_unsupported``: not 8-bit
+mono or RGB; ``image_size_mismatch``: not the calibrated size) and the messages the node or replay could not decode
+(``drop_input``: ``image_malformed``, ``image_unsupported``, ``imu_malformed``, ...). Every frame of a clip is checked
+against the calibration again when the clip is processed (the calibration may have arrived since): a misfit skips the
+clip as ``image_size_mismatch``; a frame is never stretched to the calibrated size.
 
 With ``online``, each clip's initialisation is the stream's window, and the clips are chained into one continuous
 odom trajectory: ``~/odom``, ``~/path`` and TF ``odom_frame -> base_frame`` (``publish_odom_tf``); the status names
 the window's decision. Between clips, ``~/odom/imu`` carries the last chained state propagated with every IMU sample
 (``vi3_ros.imu_odom``, ``imu_odom_rate``), restarted from each newly chained clip.
+
+When time goes back for good (``ClipBuffer``'s ``Rewind``: a looped recording, a restarted driver or simulator) the
+buffer starts over at once, ``/diagnostics`` says so (WARN, ``time_reset``), and the next status counts it in
+``input_drops``; the IMU-rate odometry forgets its state at the first sample after it, and the stream estimator (its
+window, biases and odom state) at the first clip after it, which starts a new odom segment at the odom origin.
+Clips completed before it are still processed as they were.
 
 ``backbone_delay`` pauses every clip's processing before the backbone (a slower model, for testing); ``close`` ends
 the pause.
@@ -51,7 +58,7 @@ from vi3_core.online.calibration import RigEstimate
 from vi3_core.threads import use_torch_threads
 from vi3_core.types import AnchorResult, Clip, InitResult
 from vi3_ros.calibration import Calibration, FrameMisfit, frame_problem, make_clip
-from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
+from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip, Rewind
 from vi3_ros.imu_odom import ImuOdometry
 from vi3_ros.outputs import DIAG_NAME, STATUS_NAME, ClipPublisher, OutputSink, clip_status, result_reason
 from vi3_ros.settings import Settings
@@ -97,13 +104,15 @@ class Pipeline:
 
     settings: the stream's ``Settings`` (``vi3_ros.params.resolve``); backbone: a ``vi3_core`` Backbone; calibration:
     the Calibration to use; synchronous: process each clip inside ``add_*`` (replay) instead of on the worker thread;
-    on_report: called with each ClipReport (replay's summary). Thread-safe where the node needs it: outputs are
-    published from the worker thread, inputs arrive on the executor's thread. torch's thread count of the process is
-    set here from ``threads``, before the worker thread starts (``threads``: the count applied)."""
+    on_report: called with each ClipReport (replay's summary); clock: the clock (ns) that stamps /diagnostics (the
+    node's: sim time with ``use_sim_time``), None: the stamps of the data they report (replay, bag time). Thread-safe
+    where the node needs it: outputs are published from the worker thread, inputs arrive on the executor's thread.
+    torch's thread count of the process is set here from ``threads``, before the worker thread starts (``threads``:
+    the count applied)."""
 
     def __init__(self, settings: Settings, *, backbone: Any, calibration: Calibration, sink: OutputSink,
                  types: MessageTypes, synchronous: bool = False,
-                 on_report: Callable[[ClipReport], None] | None = None) -> None:
+                 on_report: Callable[[ClipReport], None] | None = None, clock: Callable[[], int] | None = None) -> None:
         self.settings = settings
         self.stream = StreamEstimator(backbone, options=settings.stream, online=settings.online, init=settings.init,
                                       anchor=settings.anchor, calibration=settings.calibration)
@@ -112,6 +121,9 @@ class Pipeline:
         self.types = types
         self.buffer = ClipBuffer(buffer_options(settings))
         self._on_report = on_report
+        self._clock = clock
+        self._epoch = 0  # the buffer epoch of the clips the stream estimator has seen (worker side)
+        self._rewind = ""  # why time went back, last time it did
         self.outputs = ClipPublisher(settings, types=types, publish=self._publish)
         self.imu_odom = ImuOdometry(settings, types=types, publish=self._publish) \
             if settings.stream.online and settings.outputs.imu_odom_rate > 0 else None
@@ -169,8 +181,9 @@ class Pipeline:
         None."""
         with self._lock:
             events = self.buffer.add_imu(stamp_ns, gyro, accel, orientation)
+            epoch = self.buffer.epoch
         if self.imu_odom is not None:  # before a clip this sample completes is processed: it corrects the next one
-            self.imu_odom.add(stamp_ns, gyro, accel)
+            self.imu_odom.add(stamp_ns, gyro, accel, epoch)
         self._dispatch(events)
 
     def add_camera_info(self, msg: Any) -> None:
@@ -201,16 +214,21 @@ class Pipeline:
                 self.worker.submit(ev)
             elif ev.clip >= 0:
                 self._report_skip(ev.clip, ev.reason, ev.detail, ev.stamp_ns)
-            elif self._count_input_drop(ev.reason):
-                self._publish_diagnostics(Level.WARN, f"{ev.reason}: {ev.detail}", ev.stamp_ns)
+            else:
+                news = self._count_input_drop(ev.reason, ev.count)
+                if isinstance(ev, Rewind):
+                    with self._lock:
+                        self._rewind = ev.detail
+                if news or isinstance(ev, Rewind):  # a time reset is always published at once
+                    self._publish_diagnostics(Level.WARN, f"{ev.reason}: {ev.detail}", ev.stamp_ns)
 
-    def _count_input_drop(self, reason: str) -> bool:
-        """Count one dropped input message; True when its reason is news (not seen in this or the previous
-        diagnostics period), which is published at once. Every other drop waits for ``publish_diagnostics``."""
+    def _count_input_drop(self, reason: str, count: int = 1) -> bool:
+        """Count ``count`` dropped input messages of one reason; True when it is news (not seen in this or the
+        previous diagnostics period), which is published at once. Every other drop waits for ``publish_diagnostics``."""
         with self._lock:
             news = reason not in self._period_drops and reason not in self._previous_reasons
-            self._input_drops[reason] += 1
-            self._period_drops[reason] += 1
+            self._input_drops[reason] += count
+            self._period_drops[reason] += count
         return news
 
     # ---- worker side ----------------------------------------------------------------------------------------
@@ -218,6 +236,11 @@ class Pipeline:
     def _process(self, raw: RawClip) -> None:
         t_start = time.perf_counter()
         stamp_ns = int(raw.stamps_ns[-1])
+        if raw.epoch != self._epoch:  # the first clip since time went back: the stream starts over
+            self._epoch = raw.epoch
+            with self._lock:
+                why = self._rewind
+            self.stream.reset(f"time went back ({why})")
         try:
             calib = self.calibration.current()
         except CalibrationError as exc:
@@ -249,7 +272,7 @@ class Pipeline:
         if chained is not None:
             self.outputs.odom(clip, outcome, self.stream.trajectory)
             if self.imu_odom is not None:
-                self.imu_odom.restart(outcome.state, self._imu_since)
+                self.imu_odom.restart(outcome.state, self._imu_since, raw.epoch)
         self._publish_status(raw, clip, outcome.init, outcome.mode, latency, result=outcome.result,
                              decision=outcome.decision)
 
@@ -313,7 +336,8 @@ class Pipeline:
     def diagnostics_status(self, level: Level = Level.OK, message: str = "running") -> DiagStatus:
         """The pipeline's summary: counters of clips, outcomes, buffer drops and worker replacements."""
         with self._lock:
-            values = {"clips_emitted": self.buffer.clips, "worker_processed": self.worker.processed,
+            values = {"clips_emitted": self.buffer.clips, "imu_samples": self.buffer.imu_samples,
+                      "worker_processed": self.worker.processed,
                       "worker_replaced": self.worker.replaced, "worker_errors": self.worker.errors}
             values.update({f"outcome_{k}": n for k, n in sorted(self.outcomes.items())})
             values.update({f"drop_{k}": n for k, n in sorted((self.buffer.counts + self.message_drops).items())})
@@ -341,19 +365,22 @@ class Pipeline:
             self._publish_diagnostics(Level.OK, "running", stamp_ns)
 
     def _publish_diagnostics(self, level: Level, message: str, stamp_ns: int) -> None:
+        """/diagnostics, stamped by ``clock`` when there is one, else ``stamp_ns`` (the data's time)."""
+        stamp_ns = self._clock() if self._clock is not None else stamp_ns
         msg = diagnostic_array([self.diagnostics_status(level, message)], stamp_ns=stamp_ns, types=self.types)
         self._publish("diagnostics", msg, stamp_ns)
 
 
 def make_pipeline(settings: Settings, *, sink: OutputSink, types: MessageTypes, synchronous: bool = False,
-                  on_report: Callable[[ClipReport], None] | None = None) -> Pipeline:
+                  on_report: Callable[[ClipReport], None] | None = None,
+                  clock: Callable[[], int] | None = None) -> Pipeline:
     """The pipeline of ``settings``: backbone from ``backbone``/``device``/``checkpoint``, calibration file from
-    ``calib_file`` (empty: calibration must arrive as CameraInfo and /tf_static)."""
+    ``calib_file`` (empty: calibration must arrive as CameraInfo and /tf_static); ``clock``: see ``Pipeline``."""
     model, inputs = settings.model, settings.inputs
     backbone = make_backbone(model.backbone, device=model.device, checkpoint=model.checkpoint or None)
     calibration = Calibration(load_calib(inputs.calib_file) if inputs.calib_file else None)
     return Pipeline(settings, backbone=backbone, calibration=calibration, sink=sink, types=types,
-                    synchronous=synchronous, on_report=on_report)
+                    synchronous=synchronous, on_report=on_report, clock=clock)
 
 
 def _counts_text(counts: collections.Counter[str]) -> str:

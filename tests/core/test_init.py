@@ -273,3 +273,20 @@ def test_a_gap_just_over_the_limit_is_named_with_the_digits_that_show_it():
     imu = ImuSamples(t, np.zeros((len(t), 3)), np.zeros((len(t), 3)))
     reason = validate.check_imu(imu, np.array([0.0, 0.05, 0.13]), InitOptions(max_imu_gap=0.05))
     assert reason is not None and "IMU gap of 0.0500001 s > max_imu_gap 0.0500000 s" in reason, reason
+
+
+def test_a_gap_of_exactly_max_imu_gap_at_an_epoch_passes_on_its_integer_ns():
+    """Issue 25: at EuRoC's epoch float64 seconds resolve ~0.24 us, so a 50 ms gap between two ns stamps read
+    0.0500002 s > 0.0500000 s and rejected the clip. Samples that carry their ns stamps are judged on them."""
+    t0 = 1_403_636_579_758_555_392  # EuRoC MH_01's first IMU stamp
+    ns = np.concatenate([t0 + np.arange(5) * 10_000_000, t0 + 40_000_000 + 50_000_000 + np.arange(5) * 10_000_000])
+    stamps = ns[[0, 4, 9]] * 1e-9
+    options = InitOptions(max_imu_gap=0.05)
+    floats = ImuSamples(ns * 1e-9, np.zeros((len(ns), 3)), np.zeros((len(ns), 3)))
+    assert "IMU gap of 0.0500002 s > max_imu_gap 0.0500000 s" in validate.check_imu(floats, stamps, options)
+    exact = ImuSamples(ns * 1e-9, np.zeros((len(ns), 3)), np.zeros((len(ns), 3)), t_ns=ns)
+    assert validate.check_imu(exact, stamps, options) is None
+    assert validate.check_imu(exact.select(slice(1, None)), stamps[1:], options) is None  # t_ns follows select
+    ns[5:] += 1
+    late = ImuSamples(ns * 1e-9, np.zeros((len(ns), 3)), np.zeros((len(ns), 3)), t_ns=ns)
+    assert "IMU gap of 0.050000001 s > max_imu_gap 0.050000000 s" in validate.check_imu(late, stamps, options)

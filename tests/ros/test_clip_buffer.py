@@ -8,7 +8,7 @@ import pytest
 
 from vi3_core.errors import DataError
 from vi3_core.types import ImuSamples
-from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip
+from vi3_ros.clip_buffer import REWIND_AFTER_NS, ClipBuffer, ClipBufferOptions, Drop, RawClip, Rewind
 
 CAM_DT_NS = 50_000_000  # 20 Hz
 IMU_DT = 0.005  # 200 Hz
@@ -98,18 +98,135 @@ def test_stalled_imu_drops_with_reason_then_recovers():
     assert buf.counts["imu_stalled"] == len(stalled)
 
 
-def test_dropped_frame_restarts_clip():
-    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=2))
-    out = _run(buf, _events(2.0, skip_frames=(13,)))
-    gaps = [o for o in out if isinstance(o, Drop) and o.reason == "frame_gap"]
-    assert len(gaps) == 1 and gaps[0].t == pytest.approx(1.7)  # frame 13 (t=1.65) is missing
-    clips = _clips(out)
-    for c in clips:  # no emitted clip spans the gap
-        assert not (c.stamps[0] < 1.65 < c.stamps[-1])
-    assert clips[-1].stamps[0] >= 1.7
+def _frame_numbers(clips, cam_t0: float = 1.0) -> list[list[int]]:
+    return [[round((t - cam_t0) / (CAM_DT_NS * 1e-9)) for t in c.stamps] for c in clips]
+
+
+def test_a_lost_frame_the_stride_skips_changes_nothing_and_one_a_clip_needs_is_replaced_by_the_next():
+    """Issue 25: each lost frame used to be a frame_gap that threw the open clip away (one corrupt frame in 15
+    silenced the node). Frames are numbered by their stamps: a lost odd frame (stride 2 skips it) leaves every clip as
+    it was; a lost even one is replaced in its clip by the frame after it; both are counted as image_lost."""
+    opts = ClipBufferOptions(clip_length=4, stride=2)
+    whole = _frame_numbers(_clips(_run(ClipBuffer(opts), _events(2.0))))
+    assert whole[1] == [8, 10, 12, 14]
+    buf = ClipBuffer(opts)
+    assert _frame_numbers(_clips(_run(buf, _events(2.0, skip_frames=(13,))))) == whole
+    assert buf.counts == {"image_lost": 1}
+    buf = ClipBuffer(opts)
+    out = _run(buf, _events(2.0, skip_frames=(12, 16)))  # a clip's third frame, and the next clip's first
+    got = _frame_numbers(_clips(out))
+    assert got[1] == [8, 10, 13, 14] and got[2] == [17, 18, 20, 22] and got[3:] == whole[3:]
+    assert buf.counts == {"image_lost": 2}
+    (lost, _) = [o for o in out if isinstance(o, Drop)]
+    assert (lost.reason, lost.count, lost.stamp_ns) == ("image_lost", 1, 1_000_000_000 + 13 * CAM_DT_NS)
+
+
+def test_up_to_stride_frames_lost_in_a_row_are_bridged_and_more_restart_the_clip():
+    opts = ClipBufferOptions(clip_length=4, stride=2)
+    buf = ClipBuffer(opts)
+    got = _frame_numbers(_clips(_run(buf, _events(2.0, skip_frames=(12, 13)))))
+    assert got[1] == [8, 10, 14, 15] and buf.counts == {"image_lost": 2}
+    buf = ClipBuffer(opts)
+    out = _run(buf, _events(2.0, skip_frames=(11, 12, 13)))
+    (gap,) = [o for o in out if isinstance(o, Drop) and o.reason == "frame_gap"]
+    assert gap.t == pytest.approx(1.7) and buf.counts == {"image_lost": 3, "frame_gap": 1}
+    for c in _clips(out):  # no emitted clip spans the gap
+        assert not (c.stamps[0] < 1.55 < c.stamps[-1])
     # an explicit threshold wider than the gap keeps the clip
-    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=2, max_frame_gap=0.2))
-    assert not [o for o in _run(buf, _events(2.0, skip_frames=(13,))) if isinstance(o, Drop)]
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=2, max_frame_gap=0.25))
+    assert {o.reason for o in _run(buf, _events(2.0, skip_frames=(11, 12, 13))) if isinstance(o, Drop)} == \
+        {"image_lost"}
+
+
+def test_every_tenth_frame_lost_still_gives_every_clip():
+    """The live case of issue 25 (every 10th JPEG corrupt: clips_emitted stayed 0 for 20 s): as many clips as
+    without losses, each of clip_length frames."""
+    opts = ClipBufferOptions(clip_length=8, stride=2)
+    whole = _clips(_run(ClipBuffer(opts), _events(10.0)))
+    buf = ClipBuffer(opts)
+    clips = _clips(_run(buf, _events(10.0, skip_frames=range(9, 190, 10))))
+    assert len(clips) == len(whole) and all(len(c.images) == 8 for c in clips)
+    assert buf.counts == {"image_lost": 19}
+
+
+def test_lost_imu_samples_are_counted_from_the_stamps():
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=2))
+    ev = _events(2.0)
+    imus = [e for e in ev if e[1] == "imu"]
+    gone = set(imus[100:103]) | {imus[200]}
+    out = _run(buf, [e for e in ev if e not in gone])
+    lost = [o for o in out if isinstance(o, Drop) and o.reason == "imu_lost"]
+    assert [(d.count, d.stamp_ns) for d in lost] == [(3, imus[103][2]), (1, imus[201][2])]
+    assert buf.counts == {"imu_lost": 4} and buf.imu_samples == len(imus) - 4
+    assert "3 IMU sample(s) missing" in lost[0].detail and "200.0 Hz" in lost[0].detail
+
+
+def test_time_going_back_for_good_starts_the_buffer_over_and_a_late_message_does_not():
+    """Issue 25: the same seconds again with the same stamps (a looped bag, a restarted driver) were dropped as out
+    of order for good. Messages of a stream that keep coming in order behind its newest stamp for REWIND_AFTER_NS are
+    a rewind: the buffer starts over (epoch 1; here the IMU's, at 0.9 + 0.25 s, the frames having gone back too) and
+    gives clips again; one late message stays a drop."""
+    opts = ClipBufferOptions(clip_length=4, stride=2)
+    ev = _events(2.0)
+    buf = ClipBuffer(opts)
+    first = _clips(_run(buf, ev))
+    out = _run(buf, ev)  # the same two seconds again
+    (rewind,) = [o for o in out if isinstance(o, Rewind)]
+    assert rewind.reason == "time_reset" and "imu stamps went back 2.050 s" in rewind.detail
+    assert rewind.t == pytest.approx(0.9 + REWIND_AFTER_NS * 1e-9)  # the IMU's first stamp (0.9 s) + 0.25 s
+    again = _clips(out)
+    assert buf.epoch == 1 and buf.counts["time_reset"] == 1 and len(again) >= len(first) - 1
+    assert {c.epoch for c in first} == {0} and {c.epoch for c in again} == {1}
+    assert [c.index for c in again] == list(range(len(first), len(first) + len(again)))  # numbers go on
+    assert again[0].stamps[0] == pytest.approx(1.2)  # the first frame after the rewind starts a clip
+    assert buf.imu_since(0.0).t[0] == pytest.approx(rewind.t)  # nothing of the first pass is left
+    assert buf.counts["imu_out_of_order"] == REWIND_AFTER_NS // 5_000_000
+    late = ClipBuffer(opts)
+    ev = _events(2.0)
+    imus = [e for e in ev if e[1] == "imu"]
+    ev.insert(ev.index(imus[300]) + 1, imus[100])  # one sample 1 s late
+    assert len(_clips(_run(late, ev))) == len(first) and late.epoch == 0 and late.counts == {"imu_out_of_order": 1}
+
+
+def test_a_loop_seam_with_the_imu_arriving_late_resets_once():
+    """As the node receives a looped bag when its callbacks are behind: the IMU a second behind the frames. The frames
+    go back first; the old IMU that still arrives after that is dropped as from before the reset (it is not taken as
+    the new time, which would reset again when the IMU goes back), and the new IMU is taken as it comes."""
+    ev = _events(4.0)
+    seam = [(t + (4.5 if loop else 0.0), kind, v) for loop in (0, 1) for t, kind, v in ev]
+    late = sorted(seam, key=lambda e: (e[0] + (1.0 if e[1] == "imu" else 0.0), e[1] == "img"))
+    buf = ClipBuffer()
+    out = _run(buf, late)
+    (rewind,) = [o for o in out if isinstance(o, Rewind)]
+    assert rewind.detail.startswith("image stamps went back") and buf.epoch == 1
+    stale = [o for o in out if isinstance(o, Drop) and "from before time went back" in o.detail]
+    assert stale and all(o.reason == "imu_out_of_order" and o.t > 4.0 for o in stale)
+    clips = _clips(out)
+    passes = [[c for c in clips if c.epoch == e] for e in (0, 1)]
+    assert len(passes[0]) == 4 and len(passes[1]) == len(_clips(_run(ClipBuffer(), ev))) - 1
+    assert [o.clip for o in out if isinstance(o, Drop) and o.clip >= 0] == [4]  # the one waiting for the old IMU
+
+
+def test_a_clip_waiting_for_imu_when_time_goes_back_is_skipped_with_the_reason():
+    buf = ClipBuffer(ClipBufferOptions(clip_length=4, stride=1, imu_timeout=10.0))
+    ev = _events(1.0)
+    imus = [e for e in ev if e[1] == "imu"]
+    _run(buf, [e for e in ev if e[0] < (1.4 if e[1] == "img" else 1.34)])  # the second clip (to t=1.35) waits...
+    out = _run(buf, [e for e in imus if e[0] < 1.3])  # ...when the IMU goes back to its start for good
+    (skipped,) = [o for o in out if isinstance(o, Drop) and o.clip >= 0]
+    assert (skipped.reason, skipped.clip) == ("time_reset", 1) and "waiting for IMU" in skipped.detail
+    assert buf.counts["time_reset"] == 1
+
+
+def test_an_imu_that_arrives_a_second_late_but_keeps_arriving_is_waited_for():
+    """In the node the executor takes one message per subscription in turn, so when it falls behind the images' short
+    queue drains before the IMU's long one and the IMU arrives up to the callbacks' delay after the frames (1.4 s
+    measured beside a busy process). That is no stall: every clip is emitted (it used to be imu_stalled after 0.5 s)."""
+    ev = _events(6.0)
+    late = sorted(ev, key=lambda e: (e[0] + (1.0 if e[1] == "imu" else 0.0), e[1] == "img"))
+    buf = ClipBuffer()
+    clips = _clips(_run(buf, late))
+    assert len(clips) == len(_clips(_run(ClipBuffer(), ev))) and not buf.counts
 
 
 def test_out_of_order_and_duplicates_are_dropped_and_counted():
@@ -218,3 +335,9 @@ def test_imu_starting_exactly_at_the_first_frame_is_one_rule_with_the_evaluation
     late = _run(ClipBuffer(), _events(1.0, cam_t0=1.0, imu_t0=1.0 + IMU_DT))
     (drop,) = [o for o in late if isinstance(o, Drop) and o.clip == 0]
     assert drop.reason == "imu_missing" and "after the clip's first frame" in drop.detail
+
+
+def test_clip_imu_carries_the_integer_ns_stamps():
+    c = _clips(_run(ClipBuffer(ClipBufferOptions(clip_length=4, stride=2)), _events(1.0)))[0]
+    assert c.imu.t_ns is not None and c.imu.t_ns.dtype == np.int64
+    np.testing.assert_array_equal(c.imu.t_ns, np.round(c.imu.t * 1e9).astype(np.int64))

@@ -19,6 +19,7 @@ from msg_adapters.types import jazzy_types
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
 from vi3_ros.clip_buffer import ClipBuffer
+from vi3_ros.imu_odom import ODOM_YAW_SIGMA, SIGMA_FLOOR
 from vi3_ros.params import resolve
 from vi3_ros.pipeline import MAX_IMU_RATE_HZ, buffer_options
 from vi3_ros.replay import replay
@@ -59,8 +60,14 @@ def _messages(path: Path, topic: str) -> list[tuple[int, object]]:
         return [(t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages(connections=conns)]
 
 
-def test_imu_rate_odometry_follows_the_chained_state_and_is_corrected_within_its_sigma(seq4, tmp_path):
-    summary, odo = _replay(seq4, tmp_path / "out.mcap")
+@pytest.fixture(scope="module")
+def replayed4(seq4, tmp_path_factory):
+    """(summary, odometry) of the replay of ``seq4`` with the defaults (the gate open)."""
+    return _replay(seq4, tmp_path_factory.mktemp("replayed4") / "out.mcap")
+
+
+def test_imu_rate_odometry_follows_the_chained_state_and_is_corrected_within_its_sigma(replayed4):
+    summary, odo = replayed4
     assert summary.outcomes == {"init": summary.clips} and summary.clips >= 4
     odom = [m for _, m in _messages(summary.output, "/vi3_node/odom")]
     odom_ns = np.array([stamp_to_ns(m.header.stamp) for m in odom])
@@ -87,6 +94,30 @@ def test_imu_rate_odometry_follows_the_chained_state_and_is_corrected_within_its
     between = np.split(var, np.flatnonzero(np.diff(var) < 0) + 1)
     assert all(np.all(np.diff(b) > 0) for b in between)  # uncertainty grows with the time since the last clip
 
+
+
+def test_odom_covariances_are_the_chained_states_never_zero_and_grow_with_the_distance(replayed4):
+    """Issue 25: ~/odom carried all-zero covariances, which a fusion node reads as certain. Pose covariance (odom):
+    position from the scale's relative sigma and the gravity direction's over the metres flown since the segment
+    started (plus the bridges), roll and pitch the gravity direction's sigma, yaw unknown (pi); twist (base_link): the
+    window's velocity sigma and the gyro noise; every diagonal entry at least SIGMA_FLOOR^2."""
+    summary, _ = replayed4
+    odom = [odometry_to_numpy(m) for _, m in _messages(summary.output, "/vi3_node/odom")]
+    statuses = [s for _, m in _messages(summary.output, "/vi3_node/status") for s in diagnostic_array_to_statuses(m)]
+    rel = [float(s.values["scale_rel_sigma"]) for s in statuses if s.values["result"] == "init"]
+    assert len(odom) == len(rel) >= 4
+    pose = np.array([o[3] for o in odom])
+    twist = np.array([o[4] for o in odom])
+    P = np.array([o[0][:3, 3] for o in odom])
+    for cov in (*pose, *twist):
+        np.testing.assert_array_equal(cov, cov.T)
+        assert np.all(np.diag(cov) >= SIGMA_FLOOR**2) and np.all(cov[~np.eye(6, dtype=bool)] == 0)
+    np.testing.assert_allclose(pose[:, 5, 5], ODOM_YAW_SIGMA**2)
+    assert np.all(np.sqrt(pose[:, 3, 3]) < 0.05) and np.all(np.diag(twist[0])[:3] < 0.5**2)  # tilt, velocity
+    sigma_p = np.sqrt(pose[:, 0, 0])
+    flown = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    assert np.all(sigma_p >= np.minimum.accumulate(rel) * flown)  # at least the scales' share of the distance
+    assert np.all(np.diff(sigma_p) > 0)  # growing with it: a later, better scale does not undo earlier clips' errors
 
 
 def test_imu_rate_odometry_stops_when_its_position_sigma_exceeds_the_limit(seq4, tmp_path):

@@ -187,6 +187,31 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
                                [poses[0].poses[-1].position.x, poses[0].poses[-1].position.z])
 
 
+def test_depth_comes_with_the_camera_info_that_back_projects_it_onto_the_points(e2e):
+    """Issue 25: ~/depth had no CameraInfo for its intrinsics (undistorted, at the backbone's resolution), so
+    depth_image_proc and RViz could not back-project it. ~/depth/camera_info: one per depth image, same stamp and
+    frame, no distortion, P = [K | 0]; back-projected with it, the last frame's depth gives the clip's ~/points."""
+    _, _, out = e2e
+    msgs = _read(out)
+    depth, info = msgs["/vi3_node/depth"], msgs["/vi3_node/depth/camera_info"]
+    assert len(info) == len(depth) > 0
+    for d, ci in zip(depth, info):
+        assert (stamp_to_ns(ci.header.stamp), ci.header.frame_id) == (stamp_to_ns(d.header.stamp), d.header.frame_id)
+        assert (ci.width, ci.height) == (d.width, d.height) and ci.distortion_model == "plumb_bob"
+        assert not np.any(ci.d) and np.array_equal(np.reshape(ci.p, (3, 4))[:, :3], np.reshape(ci.k, (3, 3)))
+    pa, cloud = msgs["/vi3_node/poses"][0], point_cloud2_to_numpy(msgs["/vi3_node/points"][0])
+    last = 7  # the first claimed clip's 8 depth images come first (depth_frames all), its last frame last
+    assert depth[last].header.stamp == pa.header.stamp
+    z = image_to_numpy(depth[last]).astype(np.float64)
+    v, u = np.mgrid[0:z.shape[0], 0:z.shape[1]]
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(np.reshape(info[last].k, (3, 3))).T
+    T = poses_to_T(pa.poses)[-1]  # the last camera in the clip frame
+    P = (rays * z[..., None]).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    pts = np.stack([cloud["x"], cloud["y"], cloud["z"]], -1).astype(np.float64)
+    nearest = np.array([np.min(np.linalg.norm(P - p, axis=1)) for p in pts[::50]])
+    assert np.all(nearest < 1e-3 * np.maximum(np.linalg.norm(pts[::50], axis=1), 1.0))
+
+
 def test_replay_is_deterministic_and_refined_results_follow_init(bag3, tmp_path):
     """Two replays of one bag in ttr mode (a few steps): identical messages; each clip's fast init result comes
     first on ~/init/*, then the refined one on ~/poses etc., and ~/status says which is which."""
@@ -276,16 +301,49 @@ def test_fault_nan_imu_samples(bag3, tmp_path):
 
 
 def test_fault_dropped_frames(bag3, tmp_path):
+    """Issue 25: a lost frame the stride skips (frame 5) changes nothing, a lost frame the clip needs (frame 8) is
+    replaced by the next (frame 9); neither throws the clip away (each used to be a frame_gap), both are counted."""
     asl, src = bag3
     t0, t1 = _clip_window(asl, 0)
-    bag = _edited(src, tmp_path / "drop", lambda topic, t, m: [] if topic == "/cam0/image_raw" and
-                  t == t0 + 5 * 50_000_000 else [(t, m)], until_ns=_clip_window(asl, 2)[1] + 60_000_000)
+    lost = {t0 + 5 * 50_000_000, t0 + 8 * 50_000_000}
+    bag = _edited(src, tmp_path / "drop", lambda topic, t, m: [] if topic == "/cam0/image_raw" and t in lost
+                  else [(t, m)], until_ns=_clip_window(asl, 2)[1] + 60_000_000)
     summary, msgs = _run(bag, tmp_path / "out.mcap")
-    assert summary.drops["frame_gap"] == 1
-    assert any("frame_gap" in m for m in _diag_messages(msgs))
-    _assert_recovers(msgs, -1)
-    for pa in msgs["/vi3_node/poses"]:  # no clip spans the missing frame
-        assert stamp_to_ns(pa.header.stamp) - 14 * 50_000_000 > t0 + 5 * 50_000_000
+    assert summary.drops == {"image_lost": 2} and "frame_gap" not in summary.drops
+    assert any("image_lost: 1 frame(s) missing" in m for m in _diag_messages(msgs))
+    first = _statuses(msgs)[0]
+    assert first.values["result"] == "init" and "image_lost:2" in first.values["input_drops"]
+    assert (first.values["t_first"], first.values["t_last"]) == (f"{t0 * 1e-9:.9f}", f"{t1 * 1e-9:.9f}")
+    poses = msgs["/vi3_node/poses"][0]
+    assert stamp_to_ns(poses.header.stamp) == t1 and len(poses.poses) == 8
+    _assert_recovers(msgs, 0)
+
+
+def test_time_going_back_for_good_resets_the_stream_and_it_goes_on(bag3, tmp_path):
+    """Issue 25: the same seconds again with the same stamps (``ros2 bag play --loop``, a restarted driver or
+    simulator) were all dropped as out of order while /diagnostics said imu_odom: running. The lasting jump back is
+    detected, named on /diagnostics and in the next status, the buffers, the window and ~/odom/imu start over, and the
+    second pass is processed like the first, in a new odom segment."""
+    asl, src = bag3
+    seq = read_asl(asl)
+    span = int(max(seq.stamps_ns[-1], seq.imu_ns[-1]) - min(seq.stamps_ns[0], seq.imu_ns[0])) + 5_000_000
+    bag = _edited(src, tmp_path / "loop", lambda topic, t, m: [(t, m), (t + span, m)], until_ns=2**62)
+    summary, msgs = _run(bag, tmp_path / "out.mcap")
+    assert summary.drops["time_reset"] == 1
+    assert any(m.startswith("time_reset: imu stamps went back") for m in _diag_messages(msgs))
+    statuses = sorted(_statuses(msgs), key=lambda st: int(st.values["clip"]))
+    first_pass = [st for st in statuses if st.values.get("odom_segment") == "0"]
+    second = [st for st in statuses if int(st.values["clip"]) >= len(first_pass)]
+    assert len(first_pass) == 3 and len(second) >= 2, _outcomes(msgs)
+    assert all(st.values["result"] == "init" and st.values.get("odom_segment") == "1" for st in second), \
+        _outcomes(msgs)
+    assert "time_reset:1" in second[0].values["input_drops"]
+    assert "reset: time went back (imu stamps went back" in second[0].values["online"]
+    assert float(second[0].values["t_first"]) < float(first_pass[-1].values["t_first"])
+    imu_odom = [stamp_to_ns(m.header.stamp) for m in msgs["/vi3_node/odom/imu"]]
+    assert len(set(imu_odom)) < len(imu_odom)  # the second pass published its own IMU-rate odometry
+    last = _statuses(msgs, "/diagnostics")[-1].values
+    assert last["imu_odom"] == "running" and last["drop_time_reset"] == "1"
 
 
 def test_fault_out_of_order_stamps(bag3, tmp_path):

@@ -24,7 +24,7 @@ def test_threads_parameter_is_checked():
     assert resolve().model.threads == 0 and resolve({"threads": "3"}).model.threads == 3
     with pytest.raises(DataError, match=r"threads: -1 is outside \[0, 1024\]"):
         resolve({"threads": -1})
-    with pytest.raises(DataError, match="threads: expected int, got 'two'"):
+    with pytest.raises(DataError, match=r"threads: expected int in \[0, 1024\], got 'two'"):
         resolve({"threads": "two"})
     assert build_parser().parse_args(["bench", "ttr", "--threads", "1"]).threads == 1
     with pytest.raises(SystemExit):

@@ -231,7 +231,7 @@ def iter_imu(mav0: Path) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
 def read_imu(mav0: Path) -> tuple[np.ndarray, ImuSamples]:
     """imu0/data.csv -> (ns [M] int64, ImuSamples); DataError when it is empty or unsorted (``iter_samples``)."""
     ns, vals = _read_samples(imu_csv(mav0), 7)
-    return ns, ImuSamples(ns * 1e-9, vals[:, :3], vals[:, 3:])
+    return ns, ImuSamples(ns * 1e-9, vals[:, :3], vals[:, 3:], t_ns=ns)
 
 
 def read_groundtruth(mav0: Path) -> GroundTruthTrack | None:

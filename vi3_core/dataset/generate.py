@@ -180,7 +180,7 @@ class _Generated:
                            CAM_PERIOD_NS, dtype=np.int64)
         sim = self.imu(self._t(imu_ns))
         return Block(cam_ns, self.traj.T_WB(self._t(cam_ns)) @ self.calib.T_BC, imu_ns,
-                     ImuSamples(imu_ns * 1e-9, sim.samples.gyro, sim.samples.accel), imu_ns,
+                     ImuSamples(imu_ns * 1e-9, sim.samples.gyro, sim.samples.accel, t_ns=imu_ns), imu_ns,
                      self.traj.T_WB(self._t(imu_ns)), self.traj.velocity_W(self._t(imu_ns)), sim.bg, sim.ba)
 
 

@@ -21,7 +21,9 @@ def check_stamps(stamps: np.ndarray) -> str | None:
 
 
 def check_imu(imu: ImuSamples, stamps: np.ndarray, options: InitOptions) -> str | None:
-    """NaN/Inf samples, non-monotonic stamps, coverage of [stamps[0], stamps[-1]], gaps, samples per interval."""
+    """NaN/Inf samples, non-monotonic stamps, coverage of [stamps[0], stamps[-1]], gaps, samples per interval. A gap
+    is longer than ``max_imu_gap`` by the integer ns stamps where the samples carry them (``ImuSamples.t_ns``), so a
+    gap of exactly the limit passes at any epoch; by float seconds otherwise."""
     if len(imu) < 2:
         return f"too few IMU samples ({len(imu)})"
     bad = ~(np.isfinite(imu.t) & np.isfinite(imu.gyro).all(1) & np.isfinite(imu.accel).all(1))
@@ -35,7 +37,13 @@ def check_imu(imu: ImuSamples, stamps: np.ndarray, options: InitOptions) -> str 
         return (f"IMU covers [{imu.t[0]:.6f}, {imu.t[-1]:.6f}] s but the clip spans "
                 f"[{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
     span = (imu.t[1:] > stamps[0]) & (imu.t[:-1] < stamps[-1])
-    if span.any() and dt[span].max() > options.max_imu_gap:
+    if imu.t_ns is not None:  # stamps that came as ns are compared in ns, exactly
+        gaps = np.diff(imu.t_ns)
+        over = gaps > round(options.max_imu_gap * 1e9)
+        dt = gaps * 1e-9
+    else:
+        over = dt > options.max_imu_gap
+    if (span & over).any():
         i = int(np.flatnonzero(span)[np.argmax(dt[span])])
         d = _decimals_apart(dt[i], options.max_imu_gap)
         return f"IMU gap of {dt[i]:.{d}f} s > max_imu_gap {options.max_imu_gap:.{d}f} s at t={imu.t[i]:.6f} s"

@@ -56,11 +56,13 @@ class OdomState:
 @dataclass(frozen=True)
 class Placement:
     """Where the next clip's first body frame goes: R_OB1 [3,3], p_OB1 [3] m (re-levelled with the clip's gravity
-    when it is chained), and why it starts a new segment ("" when the bridge from the last chained clip holds)."""
+    when it is chained), why it starts a new segment ("" when the bridge from the last chained clip holds), and the
+    position 1-sigma (m, per axis) the IMU bridge to it adds (0 without one)."""
 
     R_OB1: np.ndarray
     p_OB1: np.ndarray
     new_segment: str = ""
+    sigma: float = 0.0
 
 
 @dataclass
@@ -137,6 +139,16 @@ class OnlineEstimator:
         self._last_start: float | None = None  # first frame of the previous clip seen, s
         self._pending: float | None = None  # first stamp of the clip ``initialise`` saw last
         self.shared: SharedFrames | None = None  # the last frames of the newest clip in the window
+        self._reset = ""  # why an estimator before this one was forgotten (``continue_after``), until a clip joins
+        self._new_segment = False  # the next chained clip starts a new segment (after a forgotten estimator)
+
+    def continue_after(self, previous: Trajectory, reason: str) -> None:
+        """Go on from the trajectory of an estimator that was forgotten (``reason``: time went back, so nothing it
+        knew holds): its segments count on, the next chained clip starts a new one at the odom origin, and the first
+        clip that joins the window names ``reason`` as its reset."""
+        self.trajectory = Trajectory(resets=list(previous.resets))
+        self._new_segment = bool(len(previous.stamps) or previous.resets)
+        self._reset = reason
 
     @property
     def g_O(self) -> np.ndarray:
@@ -190,7 +202,7 @@ class OnlineEstimator:
                            self.init_options.noise_model.accel_noise_density * T**1.5 / math.sqrt(12.0))
         new = (f"bridge of {T:.2f} s has a position 1-sigma of {sigma:.2f} m > online_max_bridge_sigma "
                f"{self.options.online_max_bridge_sigma}") if sigma > self.options.online_max_bridge_sigma else ""
-        return Placement(R_k @ pre.R[1], p_k + R_k @ d, new)
+        return Placement(R_k @ pre.R[1], p_k + R_k @ d, new, sigma)
 
     def _filtered_bg(self, t1: float, bg: np.ndarray) -> tuple[np.ndarray, float]:
         """Median [3] rad/s of the own (rotation-based) gyro-bias estimates of the clips of the last
@@ -286,7 +298,7 @@ class OnlineEstimator:
                         sigma_v=own.sigma_v, lam=own.lam, v=np.asarray(own.v1), g=np.asarray(free.g),
                         link=measured.link if measured else None,
                         link_to=measured.clip_start if measured else float("nan"))
-        reset = self._restart_reason(t1, t_end)
+        reset, self._reset = self._restart_reason(t1, t_end) or self._reset, ""
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)
             self.window.restart(ba_widen=io.accel_bias_walk**2 * max(gap, 0.0))
@@ -363,14 +375,18 @@ class OnlineEstimator:
         T_B1B = T_BC @ result.geometry.T_wc @ so3.inv_T(T_BC)  # metric body poses in B1
         T_OB = so3.make_T(R_OB1, place.p_OB1) @ T_B1B
         v_O = target.v @ R_OB1.T
-        if place.new_segment and self.state is not None:  # the segment starts at the clip's first new frame
+        new_segment = (place.new_segment and self.state is not None) or self._new_segment
+        if new_segment:  # at the clip's first new frame
             last = self.trajectory.stamps[-1] if len(self.trajectory.stamps) else -np.inf
-            self.trajectory.resets.append(float(clip.stamps[np.argmax(clip.stamps > last)]))
+            self.trajectory.start_segment(float(clip.stamps[np.argmax(clip.stamps > last)]))
+            self._new_segment = False
         fit = init.fit
         self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg),
                                np.asarray(init.ba), fit.v1_sigma if fit is not None else 0.0,
                                fit.g_sigma if fit is not None else 0.0)
 
         chained = ChainedClip(self.state.stamps, T_OB, v_O)
-        self.trajectory.extend(chained)
+        # the clip's relative position error: its scale's and its levelling's (a tilt turns metres flown sideways)
+        rel = math.hypot(fit.scale_rel_sigma, fit.g_sigma) if fit is not None else init.scale_sigma / init.scale
+        self.trajectory.extend(chained, rel_sigma=rel, bridge_sigma=0.0 if new_segment else place.sigma)
         return chained

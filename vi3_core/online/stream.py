@@ -112,6 +112,20 @@ class StreamEstimator:
         body at a later IMU time), so that the estimate can be used and applied; 0 without self-calibration."""
         return max(0.0, float(self.calibrator.x[3])) if self.calibrator is not None else 0.0
 
+    def reset(self, reason: str) -> None:
+        """Forget the stream (``reason``: time went back, so the window, its biases, the kept IMU and the odom state
+        no longer hold): the next clip starts as the first did, except that the trajectory's segments count on and
+        the next chained clip starts a new one (``OnlineEstimator.continue_after``). The rig's self-calibration is
+        kept (the rig did not change), its random walk restarting from the next clip. Nothing to forget without
+        ``online``."""
+        if self.window is not None:
+            previous = self.window.trajectory
+            self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options)
+            self.window.continue_after(previous, reason)
+            self._chained_offset = 0.0
+        if self.calibrator is not None:
+            self.calibrator.t_last = None
+
     @property
     def trajectory(self) -> Trajectory:
         """The chained odom trajectory (empty without ``online``)."""

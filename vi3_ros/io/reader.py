@@ -373,7 +373,7 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     cam_ns = np.array([e.t_ns for e in images], dtype=np.int64)
     imu_ns = np.array([e.t_ns for e in imus], dtype=np.int64)
     imu = ImuSamples(imu_ns * 1e-9, np.array([e.gyro for e in imus]).reshape(-1, 3),
-                     np.array([e.accel for e in imus]).reshape(-1, 3))
+                     np.array([e.accel for e in imus]).reshape(-1, 3), t_ns=imu_ns)
     gt = None
     if len(gts) >= 2:
         gts.sort(key=lambda e: e.t_ns)
