@@ -46,3 +46,11 @@ def cache_dir() -> Path:
 def euroc_v102(shared_dir: Path) -> Path:
     """Real EuRoC V1_02_medium IMU (200 Hz, 40 s) and ground truth (40 Hz, 83 s), calibration files, no images."""
     return _shared_mav0(shared_dir, "euroc_v102_imu_gt", "real EuRoC V1_02 IMU + GT")
+
+
+@pytest.fixture(scope="session")
+def v102(euroc_v102: Path):
+    """The real V1_02 recording opened as a ``Sequence`` (camera stamps on the IMU clock; no images)."""
+    from vi3_core.dataset.asl import read_asl
+
+    return read_asl(euroc_v102)

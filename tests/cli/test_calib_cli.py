@@ -74,3 +74,18 @@ def test_calib_json_and_a_refused_output(flight, tmp_path, capsys):
     # an output onto the calibration it corrects is refused before anything runs
     assert cli.main([*args, "-o", str(tmp_path / "wrong.yaml"), "--force"]) == 2
     assert "would destroy the input" in capsys.readouterr().err
+
+
+def test_eval_with_a_wrong_rig_reports_the_estimate_it_converged_to(euroc_v102, capsys):
+    """``vi3 eval --calib-error``: the real V1_02 IMU with the mount turned by 3 deg about body y and the IMU 20 ms
+    late; the chained JSON and every clip say what the self-calibration made of it."""
+    assert cli.main(["eval", str(euroc_v102), "--backbone", "gt", "--gt-noise", "0.001,0.05", "--calib-error",
+                     "0,3,0,20", "--json", "--no-progress"]) == 0
+    obj = json.loads(capsys.readouterr().out)
+    rig = obj["chained"]["calibration"]
+    assert rig["rotation_applied"] and rig["offset_applied"], rig
+    assert np.allclose(rig["rotation_deg"], [0.0, 3.0, 0.0], atol=0.3) and abs(rig["time_offset_ms"] - 20) < 3, rig
+    assert 0 < rig["rotation_applied_after_s"] < 15 and 0 < rig["offset_applied_after_s"] < 15, rig
+    assert obj["clips"][-1]["rig"]["clips"] == rig["clips"]
+    claims = [c for c in obj["clips"] if c["status"] == "ok"]
+    assert len(claims) >= 20 and all(abs(c["scale_fit"] - 1) < 0.1 for c in claims)

@@ -13,7 +13,6 @@ import pytest
 
 from vi3_core import so3
 from vi3_core.backbones.ground_truth import GroundTruthPoses
-from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.calib import CameraCalib
 from vi3_core.dataset.sequence import GroundTruthTrack, Sequence, make_clip, sample_clips
 from vi3_core.eval.perturb import RigError
@@ -49,14 +48,6 @@ def _error(estimate: RigEstimate, rig: RigError, reference: RigEstimate | None =
     rotation = np.degrees(estimate.rotation - (reference.rotation if reference is not None else 0.0))
     offset = estimate.time_offset - (reference.time_offset if reference is not None else 0.0)
     return float(np.abs(rotation - rig.rotation_deg).max()), abs(1e3 * (offset - rig.imu_delay_s))
-
-
-@pytest.fixture(scope="module")
-def v102(shared_dir):
-    path = shared_dir / "data" / "euroc_v102_imu_gt"
-    if not path.is_dir():
-        pytest.skip(f"real EuRoC IMU data missing at {path}")
-    return read_asl(path)
 
 
 @pytest.fixture(scope="module")

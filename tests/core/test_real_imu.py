@@ -10,21 +10,12 @@ import numpy as np
 import pytest
 
 from vi3_core.backbones.ground_truth import GroundTruthPoses
-from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.sequence import make_clip
 from vi3_core.eval.runner import EvalOptions, clip_indices
 from vi3_core.init import initialise_clip
 from vi3_core.online import StreamEstimator
 from vi3_core.sim.visual import PoseNoise
 from vi3_ros import cli
-
-
-@pytest.fixture(scope="module")
-def v102(shared_dir):
-    path = shared_dir / "data" / "euroc_v102_imu_gt"
-    if not path.is_dir():
-        pytest.skip(f"real EuRoC IMU data missing at {path}")
-    return read_asl(path)
 
 
 def test_no_folder_images_but_camera_stamps_on_the_imu_clock(v102):

@@ -4,13 +4,13 @@ the calibration file is off, for measuring the self-calibration (``vi3_core.onli
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from vi3_core import so3
 from vi3_core.dataset.sequence import Sequence
+from vi3_core.sim.visual import parse_floats
 
 
 @dataclass(frozen=True)
@@ -24,13 +24,8 @@ class RigError:
     @staticmethod
     def parse(text: str) -> RigError:
         """"RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS]" -> RigError; ValueError naming the text."""
-        try:
-            values = [float(x) for x in text.split(",")]
-            if len(values) not in (3, 4) or not all(math.isfinite(v) for v in values):
-                raise ValueError
-        except ValueError:
-            raise ValueError(f"calibration error {text!r}: expected RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS], finite "
-                             "(e.g. 3,0,0,20)") from None
+        values = parse_floats(text, (3, 4), "calibration error", "RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS], finite",
+                              "3,0,0,20")
         return RigError(tuple(values[:3]), values[3] * 1e-3 if len(values) == 4 else 0.0)
 
     @property

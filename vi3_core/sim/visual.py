@@ -8,6 +8,7 @@ translation divided by an unknown scale.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,19 @@ from vi3_core.sim.euroc import CAMERA_RATE_HZ, IMU_RATE_HZ, T_BS_CAM0
 from vi3_core.sim.imu import EUROC_NOISE, ImuNoise, default_vibration, draw_accel_bias, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
 from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Geometry, ImuSamples
+
+
+def parse_floats(text: str, counts: tuple[int, int], what: str, form: str, example: str, *,
+                 minimum: float = -math.inf) -> list[float]:
+    """The comma-separated numbers of a command-line value, between counts[0] and counts[1] of them, finite and >=
+    ``minimum``; ValueError "<what> '<text>': expected <form> (e.g. <example>)" otherwise."""
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        values = []
+    if not (counts[0] <= len(values) <= counts[1] and all(math.isfinite(v) and v >= minimum for v in values)):
+        raise ValueError(f"{what} {text!r}: expected {form} (e.g. {example})")
+    return values
 
 
 @dataclass(frozen=True)
@@ -38,14 +52,8 @@ class PoseNoise:
     @staticmethod
     def parse(text: str) -> PoseNoise:
         """"POS_M,ROT_DEG[,DRIFT_M]" (the evaluation's ``--gt-noise``) -> PoseNoise; ValueError naming the text."""
-        try:
-            values = [float(x) for x in text.split(",")]
-            if not 2 <= len(values) <= 3:
-                raise ValueError
-            return PoseNoise(*values)
-        except ValueError:
-            raise ValueError(f"pose noise {text!r}: expected POS_M,ROT_DEG[,DRIFT_M], finite and >= 0 "
-                             "(e.g. 0.003,0.1)") from None
+        return PoseNoise(*parse_floats(text, (2, 3), "pose noise", "POS_M,ROT_DEG[,DRIFT_M], finite and >= 0",
+                                       "0.003,0.1", minimum=0.0))
 
 
 @dataclass(frozen=True)
@@ -64,13 +72,8 @@ class DepthNoise:
     @staticmethod
     def parse(text: str) -> DepthNoise:
         """"REL[,SMOOTH]" (the evaluation's ``--gt-depth-noise``) -> DepthNoise; ValueError naming the text."""
-        try:
-            values = [float(x) for x in text.split(",")]
-            if not 1 <= len(values) <= 2:
-                raise ValueError
-            return DepthNoise(*values)
-        except ValueError:
-            raise ValueError(f"depth noise {text!r}: expected REL[,SMOOTH], finite and >= 0 (e.g. 0.05,0.02)") from None
+        return DepthNoise(*parse_floats(text, (1, 2), "depth noise", "REL[,SMOOTH], finite and >= 0", "0.05,0.02",
+                                        minimum=0.0))
 
     def apply(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """``depth`` [n,h,w] times exp(rel N(0, 1) per pixel + smooth ``smooth_field`` per frame)."""

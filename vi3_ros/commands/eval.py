@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gt-seed", type=int, default=0, metavar="N",
                    help="with --backbone gt: seed of the noise (each clip's noise is drawn from N and its first "
                         "stamp, so a run is repeatable); default 0")
-    p.add_argument("--calib-error", default=None, metavar="RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS]",
+    p.add_argument("--calib-error", default=None, metavar="RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS]", type=_rig_error,
                    help="evaluate with a wrong rig calibration, as a user's own file may be: the camera mount the "
                         "estimator is given is the true one turned back by (RX, RY, RZ) deg about the body axes, and "
                         "the IMU stamps are IMU_DELAY_MS late (the images, the gt instrument and the ground truth "
@@ -149,12 +149,11 @@ def _opener(args: argparse.Namespace, *, absolute: bool = False) -> functools.pa
                              calib_error=args.calib_error)
 
 
-def _open_path(path: str, *, calib_error: str | None = None, **kwargs):
-    from vi3_core.eval.perturb import RigError
+def _open_path(path: str, *, calib_error=None, **kwargs):
     from vi3_ros.io.reader import open_sequence
 
     seq = open_sequence(path, **kwargs)
-    return RigError.parse(calib_error).apply(seq) if calib_error else seq
+    return calib_error.apply(seq) if calib_error is not None else seq
 
 
 def unique_names(names: list[str], reserved: tuple[str, ...] = RESERVED_NAMES) -> list[str]:
@@ -237,6 +236,16 @@ def _ray_address(text: str) -> str:
     return text
 
 
+def _rig_error(text: str):
+    """``--calib-error``, parsed as it is read (``vi3_core.eval.perturb.RigError``)."""
+    from vi3_core.eval.perturb import RigError
+
+    try:
+        return RigError.parse(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def _positive(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -311,10 +320,9 @@ def _backbone(args: argparse.Namespace):
 
     if args.backbone == "gt":
         from vi3_core.backbones.ground_truth import GroundTruthPoses
-        from vi3_core.eval.perturb import RigError
         from vi3_core.sim.visual import DepthNoise, PoseNoise
 
-        mount_error = RigError.parse(args.calib_error).rotation if args.calib_error else None
+        mount_error = args.calib_error.rotation if args.calib_error is not None else None
         return functools.partial(GroundTruthPoses, noise=PoseNoise.parse(args.gt_noise or "0,0"),
                                  depth_noise=DepthNoise.parse(args.gt_depth_noise or "0"), seed=args.gt_seed,
                                  mount_error=mount_error)
