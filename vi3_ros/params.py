@@ -149,9 +149,11 @@ PARAMS: tuple[Param, ...] = (
           "from the backbone's rotations against the gyro, over the flight; each replaces the configured one once "
           "its sigma passes its limit (false: the calibration as configured)"),
     Param("calib_max_rotation_sigma", CalibrationOptions, "deg; the estimated mount rotation replaces the configured "
-          "one once its largest 1-sigma is below this", range=(0.001, 10.0)),
+          "one once its largest 1-sigma is below this and it differs from the configuration significantly (99 %)",
+          range=(0.001, 10.0)),
     Param("calib_max_offset_sigma", CalibrationOptions, "s; the estimated time offset replaces the configured one "
-          "once its 1-sigma is below this", range=(1e-5, 0.1)),
+          "once its 1-sigma is below this and it differs from the configuration significantly (99 %)",
+          range=(1e-5, 0.1)),
     Param("calib_prior_rotation", CalibrationOptions, "deg; how far the configured mount rotation may be off",
           range=(0.01, 90.0)),
     Param("calib_prior_offset", CalibrationOptions, "s; how far the configured time offset may be off",

@@ -18,7 +18,9 @@ is what its residuals show. Each clip's information is added to the flight's (a 
 between clips, so a slowly changing rig is followed) in an iterated update, the clip's residuals relinearised at the
 updated estimate (so that a configuration far off is not locked in by the first clips' linearisation); a clip whose
 rotations the model does not explain (the residual's RMS above ``max_rotation_error`` / 3 after its own fit: a
-backbone failure) is left out.
+backbone failure) is left out. A part of the estimate replaces the configuration once its sigma is below its limit
+and it differs from the configuration significantly (99 %): a configuration the flight cannot tell from the estimate
+is kept, since replacing a good calibration by an estimate of a few tenths of a degree would make it worse.
 """
 
 from __future__ import annotations
@@ -35,6 +37,9 @@ from vi3_core.preintegration import preintegrate
 from vi3_core.types import Clip, Geometry, ImuSamples
 
 MIN_ROTATION_NOISE_RAD = math.radians(0.02)  # no backbone's rotations are trusted as better than this per frame
+#: chi-square quantiles at 99 % for 3 and 1 degrees of freedom: an estimate replaces the configuration only where it
+#: differs from it this significantly (a configuration the flight cannot tell from the estimate is kept)
+CHI2_99 = {3: 11.345, 1: 6.635}
 RELINEARISATIONS = 3  # Gauss-Newton steps of each clip's update: a first guess far off is not locked in
 RATE_HALF_WIDTH_S = 0.025  # s; the body rate at a frame is the gyro's mean over +-this (10 samples at 200 Hz)
 
@@ -43,7 +48,8 @@ RATE_HALF_WIDTH_S = 0.025  # s; the body rate at a frame is the gyro's mean over
 class CalibrationOptions:
     """self_calibration: estimate the rig (false: the configured calibration, as given);
     calib_max_rotation_sigma: deg, the estimate of the mount's rotation replaces the configured one once its largest
-        1-sigma is below this; calib_max_offset_sigma: s, the same for the time offset;
+        1-sigma is below this (and it is significantly off the configuration); calib_max_offset_sigma: s, the same for
+        the time offset;
     calib_prior_rotation: deg, calib_prior_offset: s, how far the configuration may be off (the estimate's prior);
     calib_rotation_walk: deg/sqrt(s), calib_offset_walk: s/sqrt(s), how fast the rig may change in flight;
     calib_tolerance_rotation: deg, calib_tolerance_offset: s, how far the configuration may be off before the node
@@ -71,8 +77,9 @@ class RigEstimate:
     """The rig as the flight's rotations show it, relative to the configuration: rotation [3] rad, the mount's
     correction in the body frame (true R_BC = Exp(rotation) R_BC), time_offset s (a frame at camera time t shows the
     body at IMU time t + configured offset + time_offset); cov [4,4] their covariance; clips: how many were used;
-    rotation_applied / offset_applied: whether each part replaces the configuration (self-calibration on and its sigma
-    below its limit in ``options``)."""
+    rotation_applied / offset_applied: whether each part replaces the configuration (``RigCalibrator``: self-calibration
+    on, its sigma below its limit in ``options`` and the estimate significantly off the configuration, at some clip of
+    the flight)."""
 
     rotation: np.ndarray
     time_offset: float
@@ -100,6 +107,16 @@ class RigEstimate:
     def offset_observed(self) -> bool:
         return self.time_offset_sigma < self.options.calib_max_offset_sigma
 
+    @property
+    def rotation_significant(self) -> bool:
+        """Whether the mount's rotation differs from the configuration beyond its uncertainty (chi-square, 99 %)."""
+        d = self.rotation
+        return float(d @ np.linalg.solve(self.cov[:3, :3], d)) > CHI2_99[3]
+
+    @property
+    def offset_significant(self) -> bool:
+        return self.time_offset**2 > CHI2_99[1] * float(self.cov[3, 3])
+
     def describe(self) -> str:
         """One line: the estimate with its sigmas, whether each part is applied and, where not, about which body axes
         the mount's rotation is not observed yet (the flight has not turned across them)."""
@@ -107,9 +124,9 @@ class RigEstimate:
         rot = " ".join(f"{a:+.2f}+-{s:.2f}" for a, s in zip(deg, sd))
         unobserved = [axis for axis, seen in zip("xyz", self.rotation_observed) if not seen]
         state = "applied" if self.rotation_applied else (
-            f"configured; unobserved about body {','.join(unobserved)}" if unobserved else "configured")
+            f"configured; unobserved about body {','.join(unobserved)}" if unobserved else "configured; agrees")
         offset = "applied" if self.offset_applied else (
-            "configured" if self.offset_observed else "configured; unobserved")
+            "configured; agrees" if self.offset_observed else "configured; unobserved")
         return (f"mount rotation [{rot}] deg ({state}), time offset {1e3 * self.time_offset:+.1f}+-"
                 f"{1e3 * self.time_offset_sigma:.1f} ms ({offset}), {self.clips} clips")
 
@@ -206,14 +223,21 @@ class RigCalibrator:
         self.clips = 0
         self.t_last: float | None = None
         self.max_noise = math.radians(max_rotation_error_deg) / 3.0
+        self._rotation_on = self._offset_on = False
 
     @property
     def estimate(self) -> RigEstimate:
-        est = RigEstimate(self.x[:3].copy(), float(self.x[3]), np.linalg.inv(self.info), self.clips,
-                          options=self.options)
-        on = self.options.self_calibration
-        return replace(est, rotation_applied=bool(on and est.rotation_observed.all()),
-                       offset_applied=bool(on and est.offset_observed))
+        return RigEstimate(self.x[:3].copy(), float(self.x[3]), np.linalg.inv(self.info), self.clips,
+                           self._rotation_on, self._offset_on, self.options)
+
+    def _decide(self) -> None:
+        """Each part replaces the configuration once the estimate is sure of it (its sigma below its limit) and sure
+        that the configuration is off (significantly); from then on it stays replaced, following the estimate."""
+        if not self.options.self_calibration:
+            return
+        est = self.estimate
+        self._rotation_on |= bool(est.rotation_observed.all() and est.rotation_significant)
+        self._offset_on |= bool(est.offset_observed and est.offset_significant)
 
     def add(self, clip: Clip, geometry: Geometry, bg: np.ndarray) -> str:
         """Take clip's rotations (``geometry``: its prediction, with the configured mount ``clip.T_BC`` and stamps in
@@ -236,6 +260,7 @@ class RigCalibrator:
             x = np.linalg.solve(self.info + info, self.info @ self.x + info @ (x + step))
         self.x, self.info = x, self.info + info
         self.clips += 1
+        self._decide()
         return ""
 
     def _clip_information(self, clip: Clip, geometry: Geometry, bg: np.ndarray,
