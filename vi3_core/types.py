@@ -131,7 +131,9 @@ class Clip:
     T_BC: [4,4] camera pose in the body frame (EuRoC ``T_BS`` of cam0); imu: samples covering
     [stamps[0], stamps[-1]] with at least one sample beyond each end; gt: optional ground truth;
     imu_history: optional longer IMU window around the clip (seconds), for the long-window gravity seed;
-    stamps_ns: optional [n] int64, the frames' header stamps as recorded (camera time, ns), for outputs.
+    stamps_ns: optional [n] int64, the frames' header stamps as recorded (camera time, ns), for outputs;
+    imu_shift: s, how far the IMU's stamps (``imu``, ``imu_history``) were moved onto the frames' clock (minus the
+    rig's applied time offset, ``RigEstimate.apply``); 0 as recorded.
     """
 
     stamps: np.ndarray
@@ -142,6 +144,7 @@ class Clip:
     gt: GroundTruth | None = None
     imu_history: ImuSamples | None = None
     stamps_ns: np.ndarray | None = None
+    imu_shift: float = 0.0
 
     @property
     def n(self) -> int:

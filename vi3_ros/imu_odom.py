@@ -92,6 +92,7 @@ class ImuOdometry:
         self.types, self._publish = types, publish
         self._lock = threading.Lock()
         self._prop: ImuPropagator | None = None
+        self._caught_up: PropagatedStates | None = None  # the states ``restart`` caught up through
         self._state: OdomState | None = None
         self._next_ns: int | None = None  # the next publication is due at the first sample at or after this stamp
         self._last_ns: int | None = None  # the previous sample's stamp
@@ -116,8 +117,7 @@ class ImuOdometry:
             if not self._take_epoch(epoch):
                 return
             imu = imu_since(prop.t_c)
-            if imu is not None:
-                prop.advance(imu)
+            self._caught_up = prop.advance(imu) if imu is not None else None
             self._prop, self._state = prop, state
 
     def add(self, stamp_ns: int, gyro, accel, epoch: int = 0) -> None:
@@ -135,7 +135,9 @@ class ImuOdometry:
                 return
             states = prop.advance(ImuSamples(np.array([stamp_ns * 1e-9]), np.reshape(gyro, (1, 3)),
                                              np.reshape(accel, (1, 3))))
-            if not len(states):
+            if not len(states):  # ``restart`` may have caught up through this sample already (it came in between)
+                states = _state_at(self._caught_up, stamp_ns)
+            if states is None or not len(states):
                 return
             sig = sigmas(states, state, self.options)
             if self._too_uncertain(prop, sig, float(states.tau[-1])) or not self._due(stamp_ns, last):
@@ -175,3 +177,14 @@ class ImuOdometry:
         nxt = (self._next_ns or stamp_ns) + self.period_ns
         self._next_ns = nxt if nxt > stamp_ns else stamp_ns + self.period_ns
         return True
+
+
+def _state_at(states: PropagatedStates | None, stamp_ns: int) -> PropagatedStates | None:
+    """The state of ``states`` at the sample stamped ``stamp_ns`` (ns; within a microsecond), or None."""
+    if states is None or not len(states):
+        return None
+    k = int(np.argmin(np.abs(states.t - stamp_ns * 1e-9)))
+    if abs(states.t[k] - stamp_ns * 1e-9) > 1e-6:
+        return None
+    return PropagatedStates(*(np.asarray(a)[k:k + 1] for a in (states.t, states.T_OB, states.v_O, states.omega,
+                                                                states.tau)))

@@ -26,12 +26,13 @@ from vi3_core.sim.visual import PoseNoise
 HOP = 14  # input frames between clips: the default clip (8 frames at stride 2) sharing its first frame
 
 
-def _run(seq: Sequence, rig: RigError, *, seconds: float, seed: int = 0):
+def _run(seq: Sequence, rig: RigError, *, seconds: float, seed: int = 0, stream: StreamEstimator | None = None):
     """The stream over the first ``seconds`` of ``seq`` as a user with the wrong calibration ``rig`` sees it, the
     ground-truth instrument predicting the true camera (1 mm / 0.05 deg noise): [(outcome, true metres per unit)]."""
     seen = rig.apply(seq)
     instrument = GroundTruthPoses(noise=PoseNoise(0.001, 0.05), mount_error=rig.rotation, seed=seed)
-    stream = StreamEstimator(instrument)
+    stream = stream or StreamEstimator(instrument)
+    stream.backbone = instrument
     out = []
     for idx in sample_clips(len(seq), mode="sliding", hop=HOP):
         if seq.stamps[idx[-1]] - seq.stamps[0] > seconds:
@@ -92,6 +93,18 @@ def test_a_wrong_mount_and_time_offset_are_recovered_on_a_real_flight_and_no_cla
     assert np.array_equal(o.clip.imu.gyro[0], seen.imu.gyro[k])
     claims = [abs(o.init.scale / truth - 1) for o, truth in outcomes if o.init.ok]
     assert len(claims) >= 5 and max(claims) < 0.1, claims
+
+
+def test_the_window_keeps_each_imu_sample_once_on_the_clips_clock(v102):
+    """Once the time offset is applied, each clip's IMU is on its frames' clock; the IMU the window keeps for its
+    ties and bridges holds every sample once, on the newest clip's clock, never the same sample at two times."""
+    stream = StreamEstimator(GroundTruthPoses())
+    outcomes = _run(v102, RigError((0.0, 0.0, 0.0), 0.020), seconds=12.0, stream=stream)
+    assert outcomes[-1][0].calibration.offset_applied
+    kept = stream.window._imu  # white box: what the window integrates between clips
+    assert np.all(np.diff(kept.t) > 0.004), np.diff(kept.t).min()  # 200 Hz: no interleaved copy
+    last = outcomes[-1][0].clip.imu
+    assert np.isin(last.t, kept.t).all()
 
 
 def _sequence(traj: Trajectory, seconds: float, name: str) -> Sequence:

@@ -173,7 +173,7 @@ class RigEstimate:
             return replace(clip, T_BC=T_BC)
         history = clip.imu_history.shifted(-self.time_offset)
         return replace(clip, T_BC=T_BC, imu=history.window(float(clip.stamps[0]), float(clip.stamps[-1])),
-                       imu_history=history)
+                       imu_history=history, imu_shift=clip.imu_shift - self.time_offset)
 
     def corrected(self, T_BC: np.ndarray, time_offset: float) -> tuple[np.ndarray, float]:
         """The configured mount T_BC [4,4] and time offset (s, t_imu = t_cam + time_offset) corrected by the parts of

@@ -101,16 +101,23 @@ class OnlineDecision:
         return "; ".join(parts)
 
 
+SAME_SAMPLE_S = 1e-6  # s: IMU stamps closer than this are one sample
+
+
 def _merge_imu(a: ImuSamples | None, b: ImuSamples | None) -> ImuSamples | None:
-    """Both sample sets, sorted, each stamp once, non-finite samples dropped (a gap they leave is caught later)."""
+    """Both sample sets, sorted, each sample once (the first of stamps within ``SAME_SAMPLE_S``), non-finite samples
+    dropped (a gap they leave is caught later)."""
     parts = [p for p in (a, b) if p is not None and len(p)]
     if not parts:
         return None
     imu = ImuSamples.concatenate([replace(p, orientation=None) for p in parts])
     finite = np.isfinite(imu.t) & np.isfinite(imu.gyro).all(1) & np.isfinite(imu.accel).all(1)
     imu = imu.select(np.flatnonzero(finite))
-    _, idx = np.unique(imu.t, return_index=True)  # sorted, first occurrence of each stamp
-    return imu.select(idx) if len(idx) else None
+    order = np.argsort(imu.t, kind="stable")
+    t = imu.t[order]
+    # each sample once: two stamps within a microsecond are one sample (moved between clocks and back by round-off)
+    keep = order[np.concatenate([[True], np.diff(t) > SAME_SAMPLE_S])] if len(order) else order
+    return imu.select(keep) if len(keep) else None
 
 
 class OnlineEstimator:
@@ -133,6 +140,7 @@ class OnlineEstimator:
         self.trajectory = Trajectory()
         self.last = OnlineDecision()
         self._imu: ImuSamples | None = None
+        self._imu_shift = 0.0  # s, the clock the kept IMU is on (``Clip.imu_shift``)
         self._bgs: list[tuple[float, np.ndarray]] = []  # (first stamp, own gyro-bias estimate) of recent clips
         self._rejects = 0
         self._window_claimed = False  # the window (since its last restart) has claimed a scale
@@ -157,9 +165,15 @@ class OnlineEstimator:
     # ---- IMU bridge from the odom state ---------------------------------------------------------------------
 
     def _remember_imu(self, clip: Clip) -> None:
-        imu = _merge_imu(_merge_imu(self._imu, clip.imu_history), clip.imu)
+        """Keep the IMU of ``clip`` for the window's ties and the bridges to the next clips, all of it on the clip's
+        clock: the kept samples move by the change of ``Clip.imu_shift`` (the rig's applied time offset), so that a
+        sample never enters twice at two times."""
+        old = self._imu
+        if old is not None and clip.imu_shift != self._imu_shift:
+            old = old.shifted(clip.imu_shift - self._imu_shift)
+        imu = _merge_imu(_merge_imu(old, clip.imu_history), clip.imu)
         if imu is not None:
-            self._imu = imu.select(imu.t >= imu.t[-1] - self.options.imu_keep_s)
+            self._imu, self._imu_shift = imu.select(imu.t >= imu.t[-1] - self.options.imu_keep_s), clip.imu_shift
 
     def _imu_gap(self, t0: float, t1: float) -> str:
         """Why the kept IMU does not cover [t0, t1] ("" when it does)."""
