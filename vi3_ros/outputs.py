@@ -146,13 +146,13 @@ class ClipPublisher:
 
 def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: float, *, drops: str,
                 clip_frame: str, result: AnchorResult | None = None, decision: OnlineDecision | None = None,
-                trajectory: Trajectory | None = None, rig: RigEstimate | None = None) -> DiagStatus:
+                trajectory: Trajectory | None = None, rig: RigEstimate | None = None, rig_note: str = "") -> DiagStatus:
     """The ``~/status`` entry of one result of the node's clip ``index``, processed as ``clip`` (the frames it spans:
     ``t_first``, ``t_last``): ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
     wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
     ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), with the online
     window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment, and the
-    ``rig``'s self-calibration (key ``rig``)."""
+    ``rig``'s self-calibration (key ``rig``; ``rig_note``: why the clip did not add to it or take all of it)."""
     level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
     if drops and level is Level.OK:
         level = Level.WARN
@@ -178,6 +178,8 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
             values["odom_segment_start"] = f"{trajectory.resets[-1]:.9f}"
     if rig is not None:
         values["rig"] = rig.describe()
+    if rig_note:
+        values["rig_note"] = rig_note
     if result is not None and kind != "init":
         values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})

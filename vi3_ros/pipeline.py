@@ -129,6 +129,7 @@ class Pipeline:
             if settings.stream.online and settings.outputs.imu_odom_rate > 0 else None
         self._stopping = threading.Event()  # set by close(): ends a backbone_delay early
         self._rig: RigEstimate | None = None  # the rig's latest self-calibration
+        self._rig_note = ""  # why the last clip did not add to it, or did not take all of it
         self._lock = threading.Lock()  # guards the buffer and counters (executor thread vs worker thread)
         # Dropped input messages by reason: since the last clip status, in this diagnostics period, and the reasons
         # of the previous period (a reason in neither is news, published at once).
@@ -262,7 +263,7 @@ class Pipeline:
             return  # closing: the clip's outputs would be discarded anyway
         latency = time.perf_counter() - t_start
         chained, clip = outcome.chained, outcome.clip
-        self._rig = outcome.calibration
+        self._rig, self._rig_note = outcome.calibration, outcome.calibration_note
         with self._lock:
             self.buffer.imu_lead = self.stream.imu_lead
         if outcome.init.ok and outcome.mode != "none":
@@ -313,7 +314,7 @@ class Pipeline:
         without online)."""
         status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
-                             trajectory=self.stream.trajectory, rig=self._rig)
+                             trajectory=self.stream.trajectory, rig=self._rig, rig_note=self._rig_note)
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),
                    status, final=kind != "init" or self.settings.stream.mode == "init")
 

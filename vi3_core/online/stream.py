@@ -28,6 +28,7 @@ from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator
 from vi3_core.online.options import OnlineOptions
 from vi3_core.types import AnchorResult, Clip, InitResult, InitStatus
 
+IMU_LEAD_MARGIN_S = 0.005  # s: the most a clip waits for IMU beyond the estimated time offset (``imu_lead``)
 INIT_SOURCES = ("vi3", "gt")
 
 
@@ -109,8 +110,13 @@ class StreamEstimator:
     def imu_lead(self) -> float:
         """s of IMU the next clip should carry in its history beyond its last frame (``make_clip``'s ``lead_s``, the
         node's ``ClipBuffer.imu_lead``): the rig's estimated time offset where it is positive (a frame then shows the
-        body at a later IMU time), so that the estimate can be used and applied; 0 without self-calibration."""
-        return max(0.0, float(self.calibrator.x[3])) if self.calibrator is not None else 0.0
+        body at a later IMU time), plus three of its sigmas up to ``IMU_LEAD_MARGIN_S``, so that the estimate can be
+        applied to a clip that was cut while an earlier one was still being processed (and the estimate moved); 0
+        without self-calibration."""
+        if self.calibrator is None:
+            return 0.0
+        est = self.calibrator.estimate
+        return max(0.0, est.time_offset + min(3.0 * est.time_offset_sigma, IMU_LEAD_MARGIN_S))
 
     def reset(self, reason: str) -> None:
         """Forget the stream (``reason``: time went back, so the window, its biases, the kept IMU and the odom state
@@ -146,6 +152,8 @@ class StreamEstimator:
         configured = self._compose(clip)
         rig = self.calibrator.estimate.for_clip(configured) if self.calibrator is not None else None
         clip = rig.apply(configured) if rig is not None else configured
+        short = ("time offset not applied: the clip's IMU ends before its frames' moved times"
+                 if rig is not None and self.calibrator.estimate.offset_applied and not rig.offset_applied else "")
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
         if reason is not None:
             init = InitResult(InitStatus.REJECTED, reason)
@@ -172,7 +180,7 @@ class StreamEstimator:
             self._chained_offset = rig.time_offset if rig is not None and rig.offset_applied else 0.0
         if self.calibrator is not None:  # the rotations as configured, whatever became of the clip
             bg = result.init.bg if np.all(np.isfinite(result.init.bg)) else np.zeros(3)
-            note = self.calibrator.add(configured, result.base, bg)
+            note = "; ".join(filter(None, [short, self.calibrator.add(configured, result.base, bg)]))
             rig = self.calibrator.estimate
         return ClipOutcome(clip, result.init, result, fast[0] if fast else None,
                            window.last if window is not None else None, chained, self._state(), self._segment(),
