@@ -6,6 +6,7 @@ clip buffer's are groups too; the ones here are the ROS shell's own."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,6 +61,10 @@ class OutputOptions:
     diagnostics_period: float = 1.0
 
 
+#: A ROS 2 topic name: absolute or relative tokens of letters, digits and underscores, not starting with a digit.
+_TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
 @dataclass(frozen=True)
 class FlightOptions:
     """Odometry for a flight controller (``vi3_ros.flight_odom``): PX4 over uXRCE-DDS (``px4_msgs/VehicleOdometry``
@@ -78,6 +83,12 @@ class FlightOptions:
 
     def __post_init__(self) -> None:
         frd_rotation(self.frd_axes)
+        for name in ("px4_odom_topic", "mavros_odom_topic"):
+            if not _TOPIC.fullmatch(getattr(self, name)):
+                raise ValueError(f"{name} {getattr(self, name)!r} is not a ROS topic name (e.g. /fmu/in/"
+                                 "vehicle_visual_odometry: letters, digits and _ between slashes)")
+        if not self.vehicle_frame.strip("/"):
+            raise ValueError("vehicle_frame is empty: name the vehicle's FLU body frame (MAVROS's base_link)")
 
 
 @dataclass(frozen=True)

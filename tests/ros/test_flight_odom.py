@@ -204,6 +204,17 @@ def test_settings_a_flight_odometry_cannot_run_with_are_named(params, message):
         _flight(**params)
 
 
+@pytest.mark.parametrize("params, message", [
+    ({"px4_odom_topic": ""}, "px4_odom_topic '' is not a ROS topic name"),
+    ({"mavros_odom_topic": "/mavros/odometry out"}, "mavros_odom_topic '/mavros/odometry out' is not a ROS topic"),
+    ({"px4_odom_topic": "/fmu//in"}, "px4_odom_topic '/fmu//in' is not a ROS topic name"),
+    ({"vehicle_frame": "/"}, "vehicle_frame is empty"),
+])
+def test_topics_and_frames_that_cannot_be_used_are_named_at_once(params, message):
+    with pytest.raises(DataError, match=message):
+        resolve(params)
+
+
 def test_base_link_may_be_the_imu_when_it_is_flu_or_mavros_is_off():
     _flight(base_frame="base_link", mavros_odom=False)
     _flight(base_frame="base_link", frd_axes="+x,-y,-z")
