@@ -127,7 +127,12 @@ class _RclpyTypes(MessageTypes):
 
 @functools.cache
 def jazzy_types() -> MessageTypes:
-    """The cached resolver over the rosbags ROS 2 Jazzy typestore (for tests, replay and bag writing)."""
+    """The cached resolver over the rosbags ROS 2 Jazzy typestore (for tests, replay and bag writing), with the one
+    message the node may publish that Jazzy does not ship: PX4's VehicleOdometry (``msg_adapters.px4``)."""
     from rosbags.typesys import Stores, get_typestore
 
-    return MessageTypes.from_typestore(get_typestore(Stores.ROS2_JAZZY))
+    from msg_adapters import px4
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    px4.register(typestore)
+    return MessageTypes.from_typestore(typestore)

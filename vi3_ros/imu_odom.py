@@ -1,5 +1,6 @@
 """``~/odom/imu``: odometry at IMU rate between clips, shared by the node and replay (``vi3_ros.pipeline``), and the
-covariances of both odometry topics (``covariances``; ``chained_covariances`` for ``~/odom``).
+covariances of both odometry topics (``covariances``; ``chained_covariances`` for ``~/odom``); each published state
+also goes to the flight controllers' odometry (``vi3_ros.flight_odom``) when it is on.
 
 After each chained clip the Pipeline calls ``restart`` with the new odom state and the IMU recorded since its last
 frame (the worker thread; in the node the clip lands seconds after its frames, so the propagation catches up first);
@@ -29,6 +30,7 @@ from vi3_core.init.options import InitOptions
 from vi3_core.online import OdomState, Trajectory
 from vi3_core.online.propagator import ImuPropagator, PropagatedStates, PropagationSigmas, propagation_sigmas
 from vi3_core.types import ImuSamples
+from vi3_ros.flight_odom import Anchor, FlightOdometry
 from vi3_ros.settings import Settings
 
 
@@ -57,17 +59,24 @@ ODOM_YAW_SIGMA = math.pi
 SIGMA_FLOOR = 1e-3
 
 
+def start_covariances(state: OdomState, *, options: InitOptions, sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """``covariances`` [6,6] (pose, twist) of ``~/odom/imu`` at the chained ``state``'s last frame (tau = 0): roll and
+    pitch the gravity direction's sigma, velocity v_sigma, angular rate the gyro's white noise per ``sample_dt`` s,
+    position and yaw zero."""
+    s = propagation_sigmas(np.zeros(1), v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
+                           gravity_norm=options.gravity_norm)
+    pose, twist = covariances(s, options, sample_dt)
+    return pose[0], twist[0]
+
+
 def chained_covariances(state: OdomState, trajectory: Trajectory, *, options: InitOptions,
                         sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
     """(pose covariance [6,6] in odom over x, y, z, rot x, rot y, rot z; twist covariance [6,6] in the body frame) of
     the chained ``state`` at its last frame (``~/odom``), relative to its segment's first frame (the segment's odom
-    origin, exact by definition): ``covariances`` at tau = 0 (roll and pitch: the gravity direction's sigma; velocity:
-    v_sigma; angular rate: the gyro's white noise per ``sample_dt`` s), plus per position axis what the segment's
-    clips and bridges add up to (``trajectory.error_m``, ``trajectory.bridge_var``); yaw ODOM_YAW_SIGMA; every
-    diagonal entry at least SIGMA_FLOOR^2."""
-    s = propagation_sigmas(np.zeros(1), v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
-                           gravity_norm=options.gravity_norm)
-    pose, twist = (c[0] for c in covariances(s, options, sample_dt))
+    origin, exact by definition): ``start_covariances``, plus per position axis what the segment's clips and bridges
+    add up to (``trajectory.error_m``, ``trajectory.bridge_var``); yaw ODOM_YAW_SIGMA; every diagonal entry at least
+    SIGMA_FLOOR^2."""
+    pose, twist = start_covariances(state, options=options, sample_dt=sample_dt)
     idx = np.arange(3)
     pose[idx, idx] += trajectory.error_m**2 + trajectory.bridge_var
     pose[5, 5] = ODOM_YAW_SIGMA**2
@@ -82,18 +91,20 @@ class ImuOdometry:
     calls ``imu_since`` (which takes the Pipeline's lock) under this object's lock, so the Pipeline must not call
     into this object while it holds its own."""
 
-    def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None]) -> None:
+    def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None],
+                 flight: FlightOdometry | None = None) -> None:
         self.period_ns = round(1e9 / settings.outputs.imu_odom_rate)
         self.max_sigma = float(settings.outputs.imu_odom_max_sigma)
         self.frame, self.child = settings.frames.odom_frame, settings.frames.base_frame
         # dead reckoning is trusted for as long as the window bridges a gap between clips
         self.options, self.max_tau_s = settings.init, settings.online.online_max_bridge
 
-        self.types, self._publish = types, publish
+        self.types, self._publish, self.flight = types, publish, flight
         self._lock = threading.Lock()
         self._prop: ImuPropagator | None = None
         self._caught_up: PropagatedStates | None = None  # the states ``restart`` caught up through
         self._state: OdomState | None = None
+        self._anchor: Anchor | None = None  # the flight odometry's anchor of ``_state``
         self._next_ns: int | None = None  # the next publication is due at the first sample at or after this stamp
         self._last_ns: int | None = None  # the previous sample's stamp
         self._epoch = 0  # the clip buffer's epoch of the samples and states taken
@@ -107,10 +118,12 @@ class ImuOdometry:
                 return "waiting"
             return f"stopped: {self._prop.stopped}" if self._prop.stopped else "running"
 
-    def restart(self, state: OdomState, imu_since: Callable[[float], ImuSamples | None], epoch: int = 0) -> None:
+    def restart(self, state: OdomState, imu_since: Callable[[float], ImuSamples | None], epoch: int = 0,
+                anchor: Anchor | None = None) -> None:
         """Start over from a newly chained ``state`` of a clip of buffer ``epoch``, catching up through
         ``imu_since(t)`` (the samples recorded from at or before t s to the newest; None: none), read while no sample
-        can slip in between; nothing when time went back since that clip."""
+        can slip in between; nothing when time went back since that clip. ``anchor``: the clip's for ``flight``,
+        taken together with the state, so that no sample pairs one clip's state with another's."""
         prop = ImuPropagator(state, gravity_norm=self.options.gravity_norm, max_gap_s=self.options.max_imu_gap,
                              max_tau_s=self.max_tau_s)
         with self._lock:
@@ -118,7 +131,7 @@ class ImuOdometry:
                 return
             imu = imu_since(prop.t_c)
             self._caught_up = prop.advance(imu) if imu is not None else None
-            self._prop, self._state = prop, state
+            self._prop, self._state, self._anchor = prop, state, anchor
 
     def add(self, stamp_ns: int, gyro, accel, epoch: int = 0) -> None:
         """One IMU sample (stamp in IMU time, ns; gyro [3] rad/s; accel [3] m/s^2) of buffer ``epoch``: propagate,
@@ -130,7 +143,7 @@ class ImuOdometry:
             if last is not None and stamp_ns <= last:
                 return
             self._last_ns = stamp_ns
-            prop, state = self._prop, self._state
+            prop, state, anchor = self._prop, self._state, self._anchor
             if prop is None or prop.stopped:
                 return
             states = prop.advance(ImuSamples(np.array([stamp_ns * 1e-9]), np.reshape(gyro, (1, 3)),
@@ -144,11 +157,13 @@ class ImuOdometry:
                 return
         dt = (stamp_ns - last) * 1e-9 if last is not None else 1e-9 * self.period_ns
         pose_cov, twist_cov = covariances(sig, self.options, dt)
-        T = states.T_OB[0]
-        msg = odometry(T, T[:3, :3].T @ states.v_O[0], states.omega[0], stamp_ns=stamp_ns, frame_id=self.frame,
-                       child_frame_id=self.child, types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
+        T, v_O, omega = states.T_OB[0], states.v_O[0], states.omega[0]
+        msg = odometry(T, T[:3, :3].T @ v_O, omega, stamp_ns=stamp_ns, frame_id=self.frame, child_frame_id=self.child,
+                       types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
         self._publish("odom_imu", msg, stamp_ns)
         self.published += 1
+        if self.flight is not None and anchor is not None:
+            self.flight.propagated(anchor, stamp_ns, T, v_O, omega, pose_cov[0], twist_cov[0])
 
     def _take_epoch(self, epoch: int) -> bool:
         """Move to ``epoch`` when it is newer (time went back: everything is forgotten); False when it is older."""

@@ -2,9 +2,10 @@
 
 Only wiring lives here: parameters declared with descriptors from ``vi3_ros.params``, subscriptions with the
 sensor-data QoS (best effort) and queues that hold ``CALLBACK_DELAY_S`` of input, reliable publishers for
-``vi3_ros.outputs.OUTPUTS``, a timer for the Pipeline's periodic diagnostics (stamped, as all /diagnostics, with the
-node's clock), and callbacks that hand messages to the Pipeline (images and IMU converted with ``msg_adapters``;
-CameraInfo and /tf_static as they are, the Pipeline decodes them as replay does). A message that cannot be decoded is
+``vi3_ros.outputs.published_outputs`` (px4_msgs is imported only with ``px4_odom``), a timer for the Pipeline's
+periodic diagnostics (stamped, as all /diagnostics, with the node's clock), and callbacks that hand messages to the
+Pipeline (images and IMU converted with ``msg_adapters``; CameraInfo and /tf_static as they are, the Pipeline decodes
+them as replay does). A message that cannot be decoded is
 dropped and counted by the Pipeline (``drop_input``) like every other drop; one that never arrived is counted from the
 gap it leaves in the stamps (``image_lost``, ``imu_lost``).
 
@@ -37,7 +38,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from msg_adapters.errors import drop_reason
+from msg_adapters.errors import UnknownMessageType, drop_reason
 from msg_adapters.image import camera_frame
 from msg_adapters.imu import imu_to_sample
 from msg_adapters.stamps import stamp_to_ns
@@ -46,9 +47,10 @@ from vi3_core.dataset.calib import load_calib
 from vi3_core.errors import DataError, Vi3Error
 from vi3_ros import interrupts
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
-from vi3_ros.outputs import OUTPUTS
+from vi3_ros.outputs import published_outputs
 from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve, unknown_parameter
 from vi3_ros.pipeline import MAX_IMU_RATE_HZ, Pipeline, make_pipeline
+from vi3_ros.settings import Settings
 from vi3_ros.time_offset import resolve_time_offset
 
 RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -79,17 +81,28 @@ def descriptor(p: Param) -> ParameterDescriptor:
 
 
 class _PublisherSink:
-    """OutputSink over rclpy publishers (thread-safe: rclpy publishers may be used from the worker thread). After
-    the context has shut down nothing is published (a publish would raise)."""
+    """OutputSink over rclpy publishers of the outputs ``settings`` turn on (thread-safe: rclpy publishers may be used
+    from the worker thread). After the context has shut down nothing is published (a publish would raise). px4_msgs is
+    imported only here, when ``px4_odom`` is on; DataError when it is not installed."""
 
-    def __init__(self, node: Node, types: MessageTypes) -> None:
+    def __init__(self, node: Node, types: MessageTypes, settings: Settings) -> None:
         self.context = node.context
-        self.publishers = {key: node.create_publisher(types.get(out.msgtype), out.topic, RELIABLE)
-                           for key, out in OUTPUTS.items()}
+        self.publishers = {key: node.create_publisher(_message_class(types, out.msgtype), out.topic, RELIABLE)
+                           for key, out in published_outputs(settings).items()}
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
         if self.context.ok():
             self.publishers[key].publish(msg)
+
+
+def _message_class(types: MessageTypes, msgtype: str) -> type:
+    """The class of ``msgtype``; a message package that is not installed (px4_msgs) is a DataError saying so."""
+    try:
+        return types.get(msgtype)
+    except UnknownMessageType:
+        package = msgtype.split("/")[0]
+        raise DataError(f"{msgtype} is unknown: the package {package} is not installed or not sourced (px4_odom needs "
+                        "PX4's px4_msgs, built in the workspace from the branch of your PX4 release)") from None
 
 
 def _stamp_or_none(msg: Any) -> int | None:
@@ -115,7 +128,7 @@ class Vi3Node(Node):
             if note:
                 self.get_logger().warning(note)
         self.types = types = MessageTypes.from_rclpy()
-        self.sink = _PublisherSink(self, types)
+        self.sink = _PublisherSink(self, types, self.settings)
         self.pipeline: Pipeline = make_pipeline(self.settings, sink=self.sink, types=types,
                                                 clock=lambda: self.get_clock().now().nanoseconds)
         inputs = self.settings.inputs

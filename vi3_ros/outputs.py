@@ -1,6 +1,6 @@
 """What a stream publishes: the output topics, the sink that carries them (rclpy publishers in the node, an MCAP
 writer in replay), and the messages of one clip's outcome: poses, depth, points and the clip TF, ``~/odom``,
-``~/path`` and the odom TF, and the clip's ``~/status``.
+``~/path``, the odom TF and the flight controllers' odometry at clip rate, and the clip's ``~/status``.
 
 Frames (see docs/node.md): poses and points are in ``clip_frame``, the clip's first camera (OpenCV optical axes,
 metric), or in ``odom_frame`` with ``outputs_in_odom``; depth images in ``camera_frame``; TF ``camera_frame ->
@@ -25,7 +25,8 @@ from vi3_core.camera import backproject
 from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
 from vi3_core.online.calibration import RigEstimate
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
-from vi3_ros.imu_odom import chained_covariances
+from vi3_ros.flight_odom import Anchor, FlightOdometry
+from vi3_ros.imu_odom import chained_covariances, start_covariances
 from vi3_ros.settings import Settings
 
 
@@ -53,8 +54,26 @@ OUTPUTS: dict[str, Output] = {
     "path": Output("~/path", "nav_msgs/msg/Path"),
     "odom_imu": Output("~/odom/imu", "nav_msgs/msg/Odometry"),
 }
+#: The flight controllers' odometry (``vi3_ros.flight_odom``): message types; each is published only when its
+#: parameter is on, on the topic its ``*_topic`` parameter names.
+FLIGHT_TYPES: dict[str, str] = {"px4_odom": "px4_msgs/msg/VehicleOdometry", "mavros_odom": "nav_msgs/msg/Odometry"}
 STATUS_NAME = "vi3: clip"
 DIAG_NAME = "vi3: pipeline"
+
+
+def published_outputs(settings: Settings) -> dict[str, Output]:
+    """The outputs a stream with ``settings`` publishes: every one of OUTPUTS, and those of FLIGHT_TYPES that are on
+    (``px4_odom``, ``mavros_odom``) on their topics."""
+    fl = settings.flight
+    flight = {"px4_odom": (fl.px4_odom, fl.px4_odom_topic), "mavros_odom": (fl.mavros_odom, fl.mavros_odom_topic)}
+    return OUTPUTS | {key: Output(topic, FLIGHT_TYPES[key]) for key, (on, topic) in flight.items() if on}
+
+
+def stream_keys(settings: Settings) -> frozenset[str]:
+    """The outputs published outside any clip's messages (``~/status`` ends those): /diagnostics (timer), the
+    IMU-rate odometry, and the flight controllers' odometry when ``~/odom/imu`` feeds it."""
+    keys = {"diagnostics", "odom_imu"}
+    return frozenset(keys | set(FLIGHT_TYPES) if settings.flight.flight_odom_source == "imu" else keys)
 
 
 class OutputSink(Protocol):
@@ -84,8 +103,9 @@ class ClipPublisher:
     """The messages of one stream's clips, built from its ``settings`` and handed to ``publish(key, msg, stamp_ns)``
     (the Pipeline's, which drops them while it is closing). Used from the worker thread only."""
 
-    def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None]) -> None:
-        self.settings, self.types, self._publish = settings, types, publish
+    def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None],
+                 flight: FlightOdometry | None = None) -> None:
+        self.settings, self.types, self._publish, self.flight = settings, types, publish, flight
         self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
 
     def geometry(self, clip: Clip, geometry: Geometry, *, prefix: str, T_OC1: np.ndarray | None = None) -> None:
@@ -119,20 +139,23 @@ class ClipPublisher:
             self._publish("tf", tf_message([(T_last_clip, fr.camera_frame, fr.clip_frame, stamp)], types=types),
                           stamp)
 
-    def odom(self, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> None:
+    def odom(self, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> Anchor | None:
         """~/odom (pose and twist of base_frame at the last frame of ``clip``, with ``chained_covariances``), ~/path
         (the latest ``path_max_poses`` poses of the odom trajectory) and, with ``publish_odom_tf``, TF odom_frame ->
-        base_frame."""
+        base_frame; the flight controllers' odometry of the clip (``flight_odom_source`` clip). Returns the clip's
+        flight Anchor (None without flight odometry)."""
         fr, types = self.settings.frames, self.types
         stamp = int(clip.stamps_ns[-1])
         chained = outcome.chained
-        T = chained.T_OB[-1]
-        gyro = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)])
+        T, v_O = chained.T_OB[-1], chained.v_O[-1]
+        omega = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)]) \
+            - outcome.state.bg
+        sample_dt = float(np.median(np.diff(clip.imu.t)))
         pose_cov, twist_cov = chained_covariances(outcome.state, trajectory, options=self.settings.init,
-                                                  sample_dt=float(np.median(np.diff(clip.imu.t))))
-        self._publish("odom", odometry(T, T[:3, :3].T @ chained.v_O[-1], gyro - outcome.state.bg, stamp_ns=stamp,
-                                       frame_id=fr.odom_frame, child_frame_id=fr.base_frame, types=types,
-                                       pose_cov=pose_cov, twist_cov=twist_cov), stamp)
+                                                  sample_dt=sample_dt)
+        self._publish("odom", odometry(T, T[:3, :3].T @ v_O, omega, stamp_ns=stamp, frame_id=fr.odom_frame,
+                                       child_frame_id=fr.base_frame, types=types, pose_cov=pose_cov,
+                                       twist_cov=twist_cov), stamp)
         keep = slice(max(len(trajectory.stamps) - self.settings.outputs.path_max_poses, 0), None)
         # The header stamps of the frames (exact ns), kept for the poses the path still shows.
         self._path_ns.update(zip(clip.stamps.tolist(), clip.stamps_ns.tolist()))
@@ -142,6 +165,13 @@ class ClipPublisher:
                                    stamps_ns=stamps_ns), stamp)
         if fr.publish_odom_tf:
             self._publish("tf", tf_message([(T, fr.odom_frame, fr.base_frame, stamp)], types=types), stamp)
+        if self.flight is None:
+            return None
+        anchor = self.flight.anchor(outcome, pose_cov=pose_cov, twist_cov=twist_cov,
+                                    zero=start_covariances(outcome.state, options=self.settings.init,
+                                                           sample_dt=sample_dt))
+        self.flight.chained(anchor, float(outcome.state.stamps[-1]), T, v_O, omega)  # on the IMU clock
+        return anchor
 
 
 def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: float, *, drops: str,
@@ -197,5 +227,5 @@ def _vec(v: np.ndarray) -> str:
     return " ".join(f"{x:.6g}" for x in np.asarray(v, dtype=np.float64).reshape(-1))
 
 
-__all__ = ["DIAG_NAME", "OUTPUTS", "STATUS_NAME", "ClipPublisher", "Output", "OutputSink", "clip_status",
-           "cloud_points", "result_reason"]
+__all__ = ["DIAG_NAME", "FLIGHT_TYPES", "OUTPUTS", "STATUS_NAME", "ClipPublisher", "Output", "OutputSink",
+           "clip_status", "cloud_points", "published_outputs", "result_reason", "stream_keys"]

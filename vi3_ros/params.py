@@ -28,7 +28,15 @@ from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.online.options import OnlineOptions
 from vi3_core.online.stream import StreamOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
-from vi3_ros.settings import GROUPS, FrameOptions, InputOptions, ModelOptions, OutputOptions, Settings
+from vi3_ros.settings import (
+    GROUPS,
+    FlightOptions,
+    FrameOptions,
+    InputOptions,
+    ModelOptions,
+    OutputOptions,
+    Settings,
+)
 
 NODE_NAME = "vi3_node"
 
@@ -121,6 +129,23 @@ PARAMS: tuple[Param, ...] = (
           "position 1-sigma since the last chained frame exceeds this (a dead-reckoned pose a flight stack should not "
           "use); 0: no limit", range=(0.0, 1000000.0)),
     Param("path_max_poses", OutputOptions, "~/path keeps at most this many latest poses", range=(1, 1_000_000)),
+    # odometry for a flight controller (vi3_ros.flight_odom)
+    Param("px4_odom", FlightOptions, "publish px4_msgs/VehicleOdometry on px4_odom_topic for PX4's EKF2 (external "
+          "vision over uXRCE-DDS: local FRD frame, FRD body, variances, reset_counter, quality; online only; the node "
+          "needs px4_msgs)"),
+    Param("px4_odom_topic", FlightOptions, "topic of the PX4 odometry (the uXRCE-DDS agent's input topic, under its "
+          "namespace if it has one)"),
+    Param("mavros_odom", FlightOptions, "publish nav_msgs/Odometry for MAVROS's odometry plugin on mavros_odom_topic "
+          "(odom_frame -> vehicle_frame, FLU), which sends it to PX4 or ArduPilot as MAVLink ODOMETRY (online only)"),
+    Param("mavros_odom_topic", FlightOptions, "topic of the MAVROS odometry (the odometry plugin's input)"),
+    Param("flight_odom_source", FlightOptions, "what feeds px4_odom and mavros_odom: imu (~/odom/imu's states, up to "
+          "imu_odom_rate, variances growing with the time since the last chained clip, stopping with it at "
+          "imu_odom_max_sigma) or clip (~/odom's, one per chained clip, seconds late with a slow backbone)",
+          choices=("imu", "clip")),
+    Param("frd_axes", FlightOptions, "the vehicle's forward, right and down axes as signed axes of base_frame (the "
+          "IMU body), comma-separated: +x,-y,-z for an FLU IMU, +z,+y,-x for EuRoC's (x up, z forward)"),
+    Param("vehicle_frame", FlightOptions, "child frame of the MAVROS odometry: the vehicle's FLU body frame "
+          "(MAVROS's base_link_frame_id); its origin is the IMU's"),
     Param("online_window", OnlineOptions, "s; clips starting within this of the newest are fitted "
             "jointly (gravity and biases shared, velocities tied through the IMU, one scale per clip); older ones are "
             "marginalised into a prior", range=(0.5, 60.0)),

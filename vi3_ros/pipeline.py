@@ -22,7 +22,8 @@ clip as ``image_size_mismatch``; a frame is never stretched to the calibrated si
 With ``online``, each clip's initialisation is the stream's window, and the clips are chained into one continuous
 odom trajectory: ``~/odom``, ``~/path`` and TF ``odom_frame -> base_frame`` (``publish_odom_tf``); the status names
 the window's decision. Between clips, ``~/odom/imu`` carries the last chained state propagated with every IMU sample
-(``vi3_ros.imu_odom``, ``imu_odom_rate``), restarted from each newly chained clip.
+(``vi3_ros.imu_odom``, ``imu_odom_rate``), restarted from each newly chained clip. With ``px4_odom`` / ``mavros_odom``
+the one or the other also goes to a flight controller (``vi3_ros.flight_odom``, ``flight_odom_source``).
 
 When time goes back for good (``ClipBuffer``'s ``Rewind``: a looped recording, a restarted driver or simulator) the
 buffer starts over at once, ``/diagnostics`` says so (WARN, ``time_reset``), and the next status counts it in
@@ -59,6 +60,7 @@ from vi3_core.threads import use_torch_threads
 from vi3_core.types import AnchorResult, Clip, InitResult
 from vi3_ros.calibration import Calibration, FrameMisfit, frame_problem, make_clip
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip, Rewind
+from vi3_ros.flight_odom import FlightOdometry
 from vi3_ros.imu_odom import ImuOdometry
 from vi3_ros.outputs import DIAG_NAME, STATUS_NAME, ClipPublisher, OutputSink, clip_status, result_reason
 from vi3_ros.settings import Settings
@@ -124,8 +126,11 @@ class Pipeline:
         self._clock = clock
         self._epoch = 0  # the buffer epoch of the clips the stream estimator has seen (worker side)
         self._rewind = ""  # why time went back, last time it did
-        self.outputs = ClipPublisher(settings, types=types, publish=self._publish)
-        self.imu_odom = ImuOdometry(settings, types=types, publish=self._publish) \
+        fl = settings.flight
+        self.flight = FlightOdometry(settings, types=types, publish=self._publish, clock=clock) \
+            if fl.px4_odom or fl.mavros_odom else None
+        self.outputs = ClipPublisher(settings, types=types, publish=self._publish, flight=self.flight)
+        self.imu_odom = ImuOdometry(settings, types=types, publish=self._publish, flight=self.flight) \
             if settings.stream.online and settings.outputs.imu_odom_rate > 0 else None
         self._stopping = threading.Event()  # set by close(): ends a backbone_delay early
         self._rig: RigEstimate | None = None  # the rig's latest self-calibration
@@ -271,9 +276,9 @@ class Pipeline:
                 else None
             self.outputs.geometry(clip, outcome.result.geometry, prefix="", T_OC1=T_OC1)
         if chained is not None:
-            self.outputs.odom(clip, outcome, self.stream.trajectory)
+            anchor = self.outputs.odom(clip, outcome, self.stream.trajectory)
             if self.imu_odom is not None:
-                self.imu_odom.restart(outcome.state, self._imu_since, raw.epoch)
+                self.imu_odom.restart(outcome.state, self._imu_since, raw.epoch, anchor)
         self._publish_status(raw, clip, outcome.init, outcome.mode, latency, result=outcome.result,
                              decision=outcome.decision)
 

@@ -66,16 +66,13 @@ from vi3_ros.io.reader import (
     resolve_input,
 )
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
-from vi3_ros.outputs import OUTPUTS
+from vi3_ros.outputs import published_outputs, stream_keys
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import ClipReport, Pipeline, make_pipeline
 from vi3_ros.settings import InputOptions, Settings
 from vi3_ros.time_offset import resolve_time_offset
 
 REALTIME_STOP_WAIT_S = 0.5  # s an interrupted realtime replay waits for the clip in the worker, as the node's shutdown
-#: Outputs published outside any clip (the diagnostics timer, the IMU-rate odometry): written at once. Every other
-#: message belongs to the clip whose ``~/status`` ends it, and is written together with that status.
-STREAM_KEYS = frozenset({"diagnostics", "odom_imu"})
 UNIT_END_KEY = "status"
 
 
@@ -139,16 +136,21 @@ class McapSink:
     or nothing when nothing was written. Either way the temporary folder is removed.
 
     ``publish`` keeps a clip's messages (each thread its own) until its ``~/status`` arrives and writes them with it
-    in one step that a signal does not cut short (``STREAM_KEYS`` are written at once). Thread-safe (the realtime
+    in one step that a signal does not cut short; the outputs published outside any clip (``stream_keys``: the
+    diagnostics timer, the IMU-rate odometry) are written at once. ``settings``: the stream's, which say the outputs'
+    topics (``published_outputs``; None: the defaults). Thread-safe (the realtime
     replay's worker thread publishes beside the input thread); a message that arrives after ``commit`` or
     ``abandon`` is discarded, as the node discards the outputs of a clip still running at shutdown, and so is a
     clip whose status never came. An error writing the bag (a full disk) is a DataError naming ``path``.
     ``clock``: when set, a function giving the log time (ns) of published outputs; else their header stamps."""
 
-    def __init__(self, path: str | Path, *, types: MessageTypes, force: bool = False) -> None:
+    def __init__(self, path: str | Path, *, types: MessageTypes, force: bool = False,
+                 settings: Settings | None = None) -> None:
         self.path = Path(path)
         check_output(self.path, force=force)
         self.types = types
+        settings = settings or Settings()
+        self.outputs, self.stream_keys = published_outputs(settings), stream_keys(settings)
         try:
             self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.vi3-replay-", dir=self.path.parent))
         except OSError as err:
@@ -177,10 +179,10 @@ class McapSink:
             raise DataError(f"replay output {self.path}: cannot write it ({err.strerror or err})") from err
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
-        out = OUTPUTS[key]
+        out = self.outputs[key]
         entry = (topic_name(out.topic), out.msgtype, self.types.typestore.serialize_cdr(msg, out.msgtype),
                  int(stamp_ns if self.clock is None else self.clock()))
-        if key in STREAM_KEYS:
+        if key in self.stream_keys:
             self._write([entry])
             return
         unit = self._units.setdefault(threading.get_ident(), [])
@@ -492,7 +494,7 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
     summary = ReplaySummary(realtime=realtime)
     interrupts.hold()  # a temporary output (and the lock) exist only together with the code that removes them
     with _locked(output):
-        sink = McapSink(output, types=types, force=force)
+        sink = McapSink(output, types=types, force=force, settings=settings)
         try:
             interrupts.release()  # a signal that came meanwhile interrupts here
             pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,

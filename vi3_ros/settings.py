@@ -6,6 +6,7 @@ clip buffer's are groups too; the ones here are the ROS shell's own."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -15,6 +16,7 @@ from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.online.options import OnlineOptions
 from vi3_core.online.stream import StreamOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
+from vi3_ros.flight_frames import FLU_AXES, frd_rotation
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,36 @@ class OutputOptions:
     diagnostics_period: float = 1.0
 
 
+#: A ROS 2 topic name: absolute or relative tokens of letters, digits and underscores, not starting with a digit.
+_TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+@dataclass(frozen=True)
+class FlightOptions:
+    """Odometry for a flight controller (``vi3_ros.flight_odom``): PX4 over uXRCE-DDS (``px4_msgs/VehicleOdometry``
+    on ``px4_odom_topic``), MAVROS's odometry plugin (``nav_msgs/Odometry`` on ``mavros_odom_topic``, for PX4 or
+    ArduPilot over MAVLink), which odometry feeds them (``imu``: ``~/odom/imu``'s states; ``clip``: ``~/odom``'s), the
+    vehicle's forward-right-down axes as signed axes of ``base_frame`` (``vi3_ros.flight_frames.frd_rotation``) and
+    the child frame of the MAVROS odometry (the vehicle's FLU body frame, MAVROS's ``base_link``)."""
+
+    px4_odom: bool = False
+    px4_odom_topic: str = "/fmu/in/vehicle_visual_odometry"
+    mavros_odom: bool = False
+    mavros_odom_topic: str = "/mavros/odometry/out"
+    flight_odom_source: str = "imu"
+    frd_axes: str = FLU_AXES
+    vehicle_frame: str = "base_link"
+
+    def __post_init__(self) -> None:
+        frd_rotation(self.frd_axes)
+        for name in ("px4_odom_topic", "mavros_odom_topic"):
+            if not _TOPIC.fullmatch(getattr(self, name)):
+                raise ValueError(f"{name} {getattr(self, name)!r} is not a ROS topic name (e.g. /fmu/in/"
+                                 "vehicle_visual_odometry: letters, digits and _ between slashes)")
+        if not self.vehicle_frame.strip("/"):
+            raise ValueError("vehicle_frame is empty: name the vehicle's FLU body frame (MAVROS's base_link)")
+
+
 @dataclass(frozen=True)
 class ModelOptions:
     """The backbone: its name, torch device and checkpoint, the process's torch threads (0: automatic), and a delay
@@ -79,6 +111,7 @@ class Settings:
     inputs: InputOptions = field(default_factory=InputOptions)
     frames: FrameOptions = field(default_factory=FrameOptions)
     outputs: OutputOptions = field(default_factory=OutputOptions)
+    flight: FlightOptions = field(default_factory=FlightOptions)
     model: ModelOptions = field(default_factory=ModelOptions)
     buffer: ClipBufferOptions = field(default_factory=ClipBufferOptions)
     stream: StreamOptions = field(default_factory=StreamOptions)
@@ -108,4 +141,5 @@ def group_attr(name: str) -> str:
     return _ATTR[name]
 
 
-__all__ = ["GROUPS", "FrameOptions", "InputOptions", "ModelOptions", "OutputOptions", "Settings", "group_attr"]
+__all__ = ["GROUPS", "FlightOptions", "FrameOptions", "InputOptions", "ModelOptions", "OutputOptions", "Settings",
+           "group_attr"]

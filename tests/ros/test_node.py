@@ -8,7 +8,10 @@ Where rclpy is not installed the module skips with the reason; everything the no
 from __future__ import annotations
 
 import contextlib
+import importlib.util
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -30,6 +33,7 @@ from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from msg_adapters.diagnostics import diagnostic_array_to_statuses  # noqa: E402
 from msg_adapters.image import numpy_to_image  # noqa: E402
 from msg_adapters.imu import samples_to_imus  # noqa: E402
+from msg_adapters.px4 import DEFINITION  # noqa: E402
 from msg_adapters.stamps import stamp_to_ns  # noqa: E402
 from msg_adapters.types import MessageTypes  # noqa: E402
 from vi3_core.dataset.asl import read_asl  # noqa: E402
@@ -110,13 +114,13 @@ def test_node_publishes_metric_outputs(cache_dir, tmp_path):
 @pytest.fixture()
 def node_process():
     """Start ``vi3_node`` as its own process (``python -m vi3_ros.node``), as ros2 run starts it:
-    ``node_process(calib, *ros_args, preexec_fn=None)``. A node a failed test leaves running is killed."""
+    ``node_process(calib, *ros_args, preexec_fn=None, env=None)``. A node a failed test leaves running is killed."""
     procs: list[subprocess.Popen] = []
 
-    def start(calib, *extra: str, preexec_fn=None) -> subprocess.Popen:
+    def start(calib, *extra: str, preexec_fn=None, env: dict[str, str] | None = None) -> subprocess.Popen:
         procs.append(subprocess.Popen([sys.executable, "-m", "vi3_ros.node", "--ros-args", "-p",
                                        f"calib_file:={calib}", *extra], stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True, preexec_fn=preexec_fn))
+                                      stderr=subprocess.STDOUT, text=True, preexec_fn=preexec_fn, env=env))
         return procs[-1]
     yield start
     for proc in procs:
@@ -356,3 +360,120 @@ def test_an_integer_for_a_double_is_taken_and_a_typo_is_named_with_the_closest_n
     assert proc.returncode == 0 and "Traceback" not in out, out
     assert "unknown parameter 'backbone_dalay' (did you mean 'backbone_delay'?) is ignored" in out, out
     assert "unknown parameter 'clip_lenght' (did you mean 'clip_length'?) is ignored" in out, out
+
+
+#: A stand-in for PX4's px4_msgs (not installed here): an interface package with VehicleOdometry alone, generated
+#: from the definition replay registers (``msg_adapters.px4.DEFINITION``, written from PX4's message reference).
+PX4_MSGS_FILES = {
+    "msg/VehicleOdometry.msg": DEFINITION,
+    "CMakeLists.txt": """cmake_minimum_required(VERSION 3.8)
+project(px4_msgs)
+find_package(ament_cmake REQUIRED)
+find_package(rosidl_default_generators REQUIRED)
+rosidl_generate_interfaces(${PROJECT_NAME} "msg/VehicleOdometry.msg")
+ament_export_dependencies(rosidl_default_runtime)
+ament_package()
+""",
+    "package.xml": """<?xml version="1.0"?>
+<package format="3">
+  <name>px4_msgs</name>
+  <version>0.0.0</version>
+  <description>Test stand-in for PX4's px4_msgs: VehicleOdometry only</description>
+  <maintainer email="tests@vi3-ros.invalid">vi3 tests</maintainer>
+  <license>Apache-2.0</license>
+  <buildtool_depend>ament_cmake</buildtool_depend>
+  <buildtool_depend>rosidl_default_generators</buildtool_depend>
+  <exec_depend>rosidl_default_runtime</exec_depend>
+  <member_of_group>rosidl_interface_packages</member_of_group>
+  <export><build_type>ament_cmake</build_type></export>
+</package>
+""",
+}
+#: Prints every VehicleOdometry it receives as a JSON line (``msg_adapters.px4`` decodes the rclpy message).
+PX4_LISTENER = """
+import json, sys
+import rclpy
+from px4_msgs.msg import VehicleOdometry
+from msg_adapters.px4 import vehicle_odometry_to_px4
+rclpy.init()
+node = rclpy.create_node("px4_listener")
+def show(msg):
+    odo = vehicle_odometry_to_px4(msg)
+    print(json.dumps({k: v.tolist() if hasattr(v, "tolist") else v for k, v in vars(odo).items()}), flush=True)
+node.create_subscription(VehicleOdometry, sys.argv[1], show, 10)
+print("listening", flush=True)
+rclpy.spin(node)
+"""
+
+
+@pytest.fixture(scope="module")
+def px4_msgs_env(tmp_path_factory) -> dict[str, str]:
+    """The environment with the px4_msgs stand-in built by colcon in a workspace of its own and sourced; skipped
+    where colcon is not installed."""
+    colcon = shutil.which("colcon")
+    if colcon is None:
+        pytest.skip("colcon is not on PATH: cannot build the px4_msgs stand-in (source a ROS 2 workspace with colcon)")
+    prefixes = os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
+    if not any((Path(p) / "share" / "rosidl_default_generators").is_dir() for p in prefixes if p):
+        pytest.skip("rosidl_default_generators is not installed: cannot build the px4_msgs stand-in")
+    ws = tmp_path_factory.mktemp("px4_msgs_ws")
+    for name, text in PX4_MSGS_FILES.items():
+        (ws / "src" / "px4_msgs" / name).parent.mkdir(parents=True, exist_ok=True)
+        (ws / "src" / "px4_msgs" / name).write_text(text)
+    build = subprocess.run([colcon, "build", "--event-handlers", "console_direct-", "--cmake-args",
+                            "-DBUILD_TESTING=OFF", f"-DPython3_EXECUTABLE={sys.executable}",
+                            f"-DPython3_NumPy_INCLUDE_DIR={np.get_include()}"], cwd=ws, capture_output=True,
+                           text=True, timeout=900)
+    assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+    dump = subprocess.run(["bash", "-c", f"source {ws / 'install' / 'setup.bash'} && env -0"], capture_output=True,
+                          check=True)
+    return dict(item.split("=", 1) for item in dump.stdout.decode().split("\0") if "=" in item)
+
+
+def test_px4_odometry_without_px4_msgs_is_a_one_line_start_error():
+    if importlib.util.find_spec("px4_msgs") is not None:
+        pytest.skip("px4_msgs is installed here")
+    proc = subprocess.run([sys.executable, "-m", "vi3_ros.node", "--ros-args", "-p", "px4_odom:=true"],
+                          capture_output=True, text=True, timeout=120)
+    lines = [line for line in (proc.stdout + proc.stderr).splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in lines[0], lines
+    assert "cannot start: px4_msgs/msg/VehicleOdometry is unknown: the package px4_msgs is not installed" in lines[0]
+
+
+def test_the_node_sends_px4_vehicle_odometry_at_imu_rate(cache_dir, tmp_path, feeder_graph, node_process,
+                                                          px4_msgs_env):
+    """With px4_msgs (the stand-in) the node publishes VehicleOdometry on /fmu/in/vehicle_visual_odometry from the
+    first chained clip on, one per ~/odom/imu state: FRD pose frame, body FRD velocity, the IMU samples' stamps in
+    microseconds, its own clock's publication time, a unit quaternion, positive variances, segment 0, a quality."""
+    types, pub_img, pub_imu, _ = feeder_graph
+    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+    calib = tmp_path / "cam0.yaml"
+    write_euroc_sensor_yaml(EUROC_CAM0, calib)
+    topic = "/fmu/in/vehicle_visual_odometry"
+    listener = subprocess.Popen([sys.executable, "-c", PX4_LISTENER, topic], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True, env=px4_msgs_env)
+    try:
+        assert listener.stdout.readline().strip() == "listening"
+        proc = node_process(calib, "-p", "px4_odom:=true", "-p", "frd_axes:=+z,+y,-x", "-p", "max_scale_sigma:=10.0",
+                            env=px4_msgs_env)
+        time.sleep(6.0)  # start-up and discovery
+        t_start = time.time()
+        _feed(asl, types, pub_img, pub_imu, seconds=6.2, speed=0.4)  # 2.5 s of data, once: the backbone keeps up
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=30)
+        assert proc.returncode == 0 and "Traceback" not in out, out
+    finally:
+        listener.terminate()
+        got, _ = listener.communicate(timeout=30)
+    odo = [json.loads(line) for line in got.splitlines() if line.startswith("{")]
+    assert len(odo) >= 50, got[-2000:]
+    seq = read_asl(asl)
+    samples = np.array([o["timestamp_sample_us"] for o in odo])
+    assert np.all(np.diff(samples) > 0) and set(samples * 1000).issubset(set(seq.imu_ns.tolist()))
+    published = np.array([o["timestamp_us"] for o in odo]) * 1e-6
+    assert np.all((published > t_start) & (published < time.time())), (published[0], t_start)
+    assert {(o["pose_frame"], o["velocity_frame"], o["reset_counter"]) for o in odo} == {(2, 3, 0)}
+    assert all(1 <= o["quality"] <= 100 for o in odo)
+    np.testing.assert_allclose([np.linalg.norm(o["q"]) for o in odo], 1.0, atol=1e-5)
+    assert all(min(o["position_variance"] + o["orientation_variance"] + o["velocity_variance"]) > 0 for o in odo)

@@ -1,6 +1,7 @@
 """``vi3 demo``: the README's demo. On the bundled bag, with the embedded ``classical`` backbone: replay (writes
 the output MCAP the node would publish), then evaluation against ground truth (prints the paper-like table, writes
-the plot, the JSON report and TUM trajectories), then says where everything is and how to open the MCAP.
+the plot, the JSON report and TUM trajectories), then says where everything is and how to open the MCAP in its views
+(RViz2's config and Foxglove's layout in config/).
 
 Kept small so that ``make demo`` finishes in under 5 minutes on a 2-core CPU from a fresh clone: the bundled
 short sequence, ``init`` mode for replay and evaluation, the paper's three clips; ``--ttr-steps K`` adds a short TTR
@@ -14,8 +15,14 @@ import json
 import time
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[2]
 #: The bundled sequence: a rosbag2 MCAP directory with its Kalibr calibration inside (see bags/README.md).
-BUNDLED = Path(__file__).resolve().parents[2] / "bags" / "vi3_demo"
+BUNDLED = REPO / "bags" / "vi3_demo"
+#: The views of the output (installed by colcon in share/vi3_ros/config): RViz2's config and Foxglove's layout.
+VIEWS = (REPO / "config" / "vi3.rviz", REPO / "config" / "vi3_foxglove.json")
+#: What the demo's replay adds for the views: the input images and IMU, poses and points in odom (one 3D scene with
+#: the path and the odometry) and the odom TF.
+VIEW_ARGS = ("--copy-inputs", "--param", "outputs_in_odom=true", "--param", "publish_odom_tf=true")
 
 
 def demo_inputs(source: Path) -> tuple[Path, Path, Path | None]:
@@ -29,6 +36,14 @@ def demo_inputs(source: Path) -> tuple[Path, Path, Path | None]:
     calib = bundle / "camchain-imucam.yaml"
     return (bundle / "mcap", bundle / "asl" if (bundle / "asl").is_dir() else bundle / "mcap",
             calib if calib.is_file() else None)
+
+
+def replay_args(bag: Path, mcap: Path, *, backbone: str, calib: Path | None) -> list[str]:
+    """The demo's ``vi3 replay`` command line: ``bag`` into ``mcap`` with ``backbone`` in init mode, with the views'
+    additions (VIEW_ARGS)."""
+    calib_args = ["--calib", str(calib)] if calib is not None else []
+    return ["replay", str(bag), "--output", str(mcap), "--backbone", backbone, "--mode", "init", *calib_args,
+            *VIEW_ARGS]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -61,14 +76,12 @@ def run(args: argparse.Namespace) -> int:
               "pass --input to use another sequence)")
         return 2
     bag, eval_input, calib = demo_inputs(source)
-    calib_args = ["--calib", str(calib)] if calib is not None else []
     t_all = time.perf_counter()
 
     t0 = _step(f"1/2 replay {bag} -> {mcap}  (backbone {args.backbone}, init mode)")
     if mcap.exists():  # the demo's own output from an earlier run
         mcap.unlink()
-    rc = cli.main(["replay", str(bag), "--output", str(mcap), "--backbone", args.backbone, "--mode", "init",
-                   *calib_args])
+    rc = cli.main(replay_args(bag, mcap, backbone=args.backbone, calib=calib))
     if rc:
         print(f"vi3 demo: replay failed with exit status {rc}")
         return rc
@@ -88,13 +101,17 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"""
 == done in {time.perf_counter() - t_all:.0f} s. Outputs in {out}/:
-   {mcap}   what the node publishes (poses, depth 32FC1, PointCloud2, TF, status), rosbag2 MCAP
+   {mcap}   what the node publishes (poses, depth 32FC1, PointCloud2, odometry, path, TF, status) and the
+                             input images and IMU, rosbag2 MCAP
    {png}          top-down trajectories (GT black, base red, IMU blue, VI3 green) and point cloud
    {png.with_name(png.stem + "_sigma.png")}    each claimed clip's scale error against its scale sigma
    {report_json}         the metrics as JSON (schema: docs/evaluation.md)
    {tum_dir}/               TUM trajectories for evo, e.g. evo_traj tum {tum_dir}/clip000_*.txt -p
 
-   Open the MCAP in Foxglove (https://app.foxglove.dev: Open local file -> {mcap.name}), or on a ROS 2 Jazzy machine:
-     ros2 bag play {mcap}      (then view the topics in rviz2)
-     ros2 bag info {mcap}""")
+   Views (images, depth, point cloud, poses, odometry and path):
+     Foxglove (https://app.foxglove.dev or the desktop app): Open local file -> {mcap}, then
+       Layouts -> Import from file -> {VIEWS[1]}
+     RViz2, on a ROS 2 Jazzy machine:
+       ros2 bag play {mcap} --loop   and beside it   rviz2 -d {VIEWS[0]}
+     Live: ros2 launch vi3_ros vi3.launch.py rviz:=true  (or views:=true with foxglove_bridge and the layout)""")
     return 0

@@ -33,6 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing OUT (an MCAP file or rosbag2 folder); "
                    "never an input, nor an output another run is writing")
     p.add_argument("--copy-inputs", action="store_true", help="also write the input images and IMU")
+    p.add_argument("--px4", action="store_true", help="also write the px4_msgs/VehicleOdometry that the node would "
+                   "send PX4 (parameter px4_odom; no px4_msgs needed: its definition goes into the MCAP)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run)
@@ -44,7 +46,7 @@ def settings_from_args(args: argparse.Namespace):
 
     return settings_from_cli(args.params_file, args.param, {
         "backbone": args.backbone, "mode": args.mode, "calib_file": args.calib, "device": args.device,
-        "backbone_delay": args.backbone_delay})
+        "backbone_delay": args.backbone_delay, "px4_odom": True if args.px4 else None})
 
 
 def run(args: argparse.Namespace) -> int:
