@@ -106,6 +106,14 @@ def inv_T(T: np.ndarray) -> np.ndarray:
     return make_T(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
 
 
+def turn_T(T: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """A copy of the transform ``T`` [4,4] with its rotation turned by Exp(w) (w [3] rad, in the frame T maps into:
+    R -> Exp(w) R), its translation kept: a camera mount T_BC turned about the body axes."""
+    T = np.array(T, dtype=np.float64, copy=True)
+    T[:3, :3] = exp(w) @ T[:3, :3]
+    return T
+
+
 def relative_to_first(T: np.ndarray) -> np.ndarray:
     """Re-anchor poses [n,4,4] (X -> world) so that the first is the identity: T_0^-1 T_i."""
     return np.einsum("ij,njk->nik", inv_T(T[0]), T)

@@ -56,8 +56,7 @@ class GroundTruthPoses(Backbone):
 
     def forward(self, inputs: BackboneInputs, condition: Condition | None = None) -> Prediction:
         clip = self._clip
-        T_BC = clip.T_BC.copy()
-        T_BC[:3, :3] = so3.exp(self.mount_error) @ clip.T_BC[:3, :3]
+        T_BC = so3.turn_T(clip.T_BC, self.mount_error)
         T_gt = gt_camera_poses(clip.gt, T_BC)
         dist = float(np.linalg.norm(T_gt[:, :3, 3], axis=1).mean())
         scale = self.last_scale = dist if dist > 0 else 1.0  # metres per model unit

@@ -36,8 +36,7 @@ class RigError:
     def apply(self, seq: Sequence) -> Sequence:
         """``seq`` as a user with this error sees it: its calibration's mount turned back by the rotation (the truth is
         the file's), its IMU stamps delayed; images and ground truth as recorded."""
-        T_BC = seq.calib.T_BC.copy()
-        T_BC[:3, :3] = so3.exp(-self.rotation) @ T_BC[:3, :3]
+        T_BC = so3.turn_T(seq.calib.T_BC, -self.rotation)
         imu = dataclasses.replace(seq.imu, t=seq.imu.t + self.imu_delay_s)
         return dataclasses.replace(seq, calib=dataclasses.replace(seq.calib, T_BC=T_BC), imu=imu)
 

@@ -165,10 +165,7 @@ class RigEstimate:
         its IMU history moved onto the frames' clock by the time offset (a frame at stamp t shows the body at IMU time
         t + time_offset) and its IMU cut again from it. The frames' stamps stay: a frame shared by two clips keeps one
         stamp while the estimate moves."""
-        T_BC = clip.T_BC
-        if self.rotation_applied:
-            T_BC = T_BC.copy()
-            T_BC[:3, :3] = so3.exp(self.rotation) @ clip.T_BC[:3, :3]
+        T_BC = so3.turn_T(clip.T_BC, self.rotation) if self.rotation_applied else clip.T_BC
         if not self.offset_applied:
             return replace(clip, T_BC=T_BC)
         history = clip.imu_history.shifted(-self.time_offset)
@@ -179,9 +176,7 @@ class RigEstimate:
         """The configured mount T_BC [4,4] and time offset (s, t_imu = t_cam + time_offset) corrected by the parts of
         the estimate that are sure enough to be applied (the rest as configured): what the calibration file should
         say."""
-        T = np.array(T_BC, np.float64, copy=True)
-        if self.rotation_applied:
-            T[:3, :3] = so3.exp(self.rotation) @ T[:3, :3]
+        T = so3.turn_T(T_BC, self.rotation) if self.rotation_applied else np.array(T_BC, np.float64, copy=True)
         return T, time_offset + (self.time_offset if self.offset_applied else 0.0)
 
 
@@ -269,8 +264,7 @@ class RigCalibrator:
         ``x`` [4] (where the residuals are linearised) that the clip alone points to), or why the clip says
         nothing."""
         delta, td = x[:3], float(x[3])
-        T_BC = clip.T_BC.copy()
-        T_BC[:3, :3] = so3.exp(delta) @ clip.T_BC[:3, :3]
+        T_BC = so3.turn_T(clip.T_BC, delta)
         stamps = clip.stamps + td
         imu = clip.imu_history if clip.imu_history is not None else clip.imu
         if not len(imu) or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
