@@ -34,9 +34,10 @@ from vi3_ros.flight_odom import Anchor, FlightOdometry
 from vi3_ros.settings import Settings
 
 
-def sigmas(states: PropagatedStates, state: OdomState, options: InitOptions) -> PropagationSigmas:
-    """The 1-sigmas of propagated ``states`` [m], from ``state``'s sigmas and ``options``' IMU noise model."""
-    return propagation_sigmas(states.tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
+def sigmas(tau: np.ndarray, state: OdomState, options: InitOptions) -> PropagationSigmas:
+    """The 1-sigmas of states propagated ``tau`` [m] s from ``state``'s last frame, from ``state``'s sigmas and
+    ``options``' IMU noise model."""
+    return propagation_sigmas(tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
                               gravity_norm=options.gravity_norm)
 
 
@@ -63,20 +64,18 @@ def start_covariances(state: OdomState, *, options: InitOptions, sample_dt: floa
     """``covariances`` [6,6] (pose, twist) of ``~/odom/imu`` at the chained ``state``'s last frame (tau = 0): roll and
     pitch the gravity direction's sigma, velocity v_sigma, angular rate the gyro's white noise per ``sample_dt`` s,
     position and yaw zero."""
-    s = propagation_sigmas(np.zeros(1), v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
-                           gravity_norm=options.gravity_norm)
-    pose, twist = covariances(s, options, sample_dt)
+    pose, twist = covariances(sigmas(np.zeros(1), state, options), options, sample_dt)
     return pose[0], twist[0]
 
 
-def chained_covariances(state: OdomState, trajectory: Trajectory, *, options: InitOptions,
-                        sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
+def chained_covariances(start: tuple[np.ndarray, np.ndarray],
+                        trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
     """(pose covariance [6,6] in odom over x, y, z, rot x, rot y, rot z; twist covariance [6,6] in the body frame) of
-    the chained ``state`` at its last frame (``~/odom``), relative to its segment's first frame (the segment's odom
-    origin, exact by definition): ``start_covariances``, plus per position axis what the segment's clips and bridges
-    add up to (``trajectory.error_m``, ``trajectory.bridge_var``); yaw ODOM_YAW_SIGMA; every diagonal entry at least
-    SIGMA_FLOOR^2."""
-    pose, twist = start_covariances(state, options=options, sample_dt=sample_dt)
+    the chained state at its last frame (``~/odom``), relative to its segment's first frame (the segment's odom
+    origin, exact by definition): ``start``, the state's ``start_covariances`` (not modified), plus per position axis
+    what the segment's clips and bridges add up to (``trajectory.error_m``, ``trajectory.bridge_var``); yaw
+    ODOM_YAW_SIGMA; every diagonal entry at least SIGMA_FLOOR^2."""
+    pose, twist = start[0].copy(), start[1].copy()
     idx = np.arange(3)
     pose[idx, idx] += trajectory.error_m**2 + trajectory.bridge_var
     pose[5, 5] = ODOM_YAW_SIGMA**2
@@ -152,7 +151,7 @@ class ImuOdometry:
                 states = _state_at(self._caught_up, stamp_ns)
             if states is None or not len(states):
                 return
-            sig = sigmas(states, state, self.options)
+            sig = sigmas(states.tau, state, self.options)
             if self._too_uncertain(prop, sig, float(states.tau[-1])) or not self._due(stamp_ns, last):
                 return
         dt = (stamp_ns - last) * 1e-9 if last is not None else 1e-9 * self.period_ns

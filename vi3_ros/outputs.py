@@ -151,8 +151,8 @@ class ClipPublisher:
         omega = np.array([np.interp(clip.stamps[-1], clip.imu.t, clip.imu.gyro[:, a]) for a in range(3)]) \
             - outcome.state.bg
         sample_dt = float(np.median(np.diff(clip.imu.t)))
-        pose_cov, twist_cov = chained_covariances(outcome.state, trajectory, options=self.settings.init,
-                                                  sample_dt=sample_dt)
+        zero = start_covariances(outcome.state, options=self.settings.init, sample_dt=sample_dt)
+        pose_cov, twist_cov = chained_covariances(zero, trajectory)
         self._publish("odom", odometry(T, T[:3, :3].T @ v_O, omega, stamp_ns=stamp, frame_id=fr.odom_frame,
                                        child_frame_id=fr.base_frame, types=types, pose_cov=pose_cov,
                                        twist_cov=twist_cov), stamp)
@@ -167,9 +167,7 @@ class ClipPublisher:
             self._publish("tf", tf_message([(T, fr.odom_frame, fr.base_frame, stamp)], types=types), stamp)
         if self.flight is None:
             return None
-        anchor = self.flight.anchor(outcome, pose_cov=pose_cov, twist_cov=twist_cov,
-                                    zero=start_covariances(outcome.state, options=self.settings.init,
-                                                           sample_dt=sample_dt))
+        anchor = self.flight.anchor(outcome, pose_cov=pose_cov, twist_cov=twist_cov, zero=zero)
         self.flight.chained(anchor, float(outcome.state.stamps[-1]), T, v_O, omega)  # on the IMU clock
         return anchor
 
