@@ -212,8 +212,10 @@ class RigCalibrator:
     def __init__(self, options: CalibrationOptions | None = None, *, max_rotation_error_deg: float = 2.0) -> None:
         self.options = options or CalibrationOptions()
         o = self.options
-        self._prior = np.diag([math.radians(o.calib_prior_rotation) ** -2] * 3 + [o.calib_prior_offset ** -2])
-        self.info = self._prior.copy()  # information of x = (delta [3], td)
+        # information of x = (delta [3], td): the prior's, then the flight's
+        self.info = np.diag([math.radians(o.calib_prior_rotation) ** -2] * 3 + [o.calib_prior_offset ** -2])
+        # the random walk's variance per second between clips
+        self._walk = np.diag([math.radians(o.calib_rotation_walk) ** 2] * 3 + [o.calib_offset_walk ** 2])
         self.x = np.zeros(4)
         self.clips = 0
         self.t_last: float | None = None
@@ -240,9 +242,7 @@ class RigCalibrator:
         were used, else why not."""
         t = float(clip.stamps[0])
         if self.t_last is not None and t > self.t_last:  # the random walk since the last clip
-            o = self.options
-            walk = np.diag([math.radians(o.calib_rotation_walk) ** 2] * 3 + [o.calib_offset_walk ** 2])
-            self.info = np.linalg.inv(np.linalg.inv(self.info) + walk * (t - self.t_last))
+            self.info = np.linalg.inv(np.linalg.inv(self.info) + self._walk * (t - self.t_last))
         self.t_last = max(t, self.t_last or t)
         x, linearised = self.x, False
         for _ in range(RELINEARISATIONS):  # Gauss-Newton on the prior and the clip (an iterated Kalman update)
@@ -269,6 +269,9 @@ class RigCalibrator:
         imu = clip.imu_history if clip.imu_history is not None else clip.imu
         if not len(imu) or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
             return "no IMU at the frames' times"
+        dof = 3 * (len(stamps) - 1) - 7
+        if dof < 3:
+            return f"{len(stamps)} frames are too few to tell the rig from the clip's gyro bias"
         pre = preintegrate(imu.window(float(stamps[0]), float(stamps[-1])), stamps, bg, jacobians=True)
         R, phi = pre.R, pre.J.phi_bg  # R_B1Bk(bg + d) = Exp(phi_k d) R_B1Bk(bg)
         w = frame_rates(imu, stamps) - bg
@@ -285,9 +288,6 @@ class RigCalibrator:
         info = np.einsum("pak,pq,qal->kl", H, W, H)
         sol = np.linalg.lstsq(info, np.einsum("pak,pq,qa->k", H, W, r), rcond=None)[0]
         res = r - H @ sol
-        dof = 3 * (len(stamps) - 1) - 7
-        if dof < 3:
-            return f"{len(stamps)} frames are too few to tell the rig from the clip's gyro bias"
         noise = math.sqrt(float(np.einsum("pa,pq,qa->", res, W, res)) / dof)  # rad per frame and axis
         if noise > self.max_noise:
             return (f"rotations not explained by the rig ({math.degrees(noise):.2f} deg per frame after the fit): a "

@@ -102,13 +102,11 @@ class SharedFrames:
 @dataclass(frozen=True)
 class MeasuredLink:
     """A link measured on ``frames`` shared frames from ``source`` ("depth", "poses" or "depth+poses"): ``link`` the
-    ratio for the fit, ``blocks`` the depth blocks it rests on (0 without depth), and the clip it links to
-    (``clip_start``, s)."""
+    ratio for the fit, and the clip it links to (``clip_start``, s)."""
 
     link: ScaleLink
     frames: int
     source: str
-    blocks: int
     clip_start: float
 
     def describe(self) -> str:
@@ -189,8 +187,7 @@ def measure_link(shared: SharedFrames, geometry: Geometry, sigma_v: float, *, si
         log_ratio, sigma = (wa * a + wb * b) / (wa + wb), (wa + wb) ** -0.5
     else:
         log_ratio, sigma = next(iter(found.values()))
-    blocks = d[2] if not isinstance(d, str) else 0
-    return MeasuredLink(ScaleLink(log_ratio, sigma), k, "+".join(found), blocks, shared.clip_start)
+    return MeasuredLink(ScaleLink(log_ratio, sigma), k, "+".join(found), shared.clip_start)
 
 
 def _trusted(conf: np.ndarray) -> np.ndarray:

@@ -150,10 +150,11 @@ class StreamEstimator:
         is called once the clip passed the data checks; when it returns False the clip is abandoned (None: nothing
         changed). Bad data never raises: it is the outcome's ``init`` status."""
         configured = self._compose(clip)
-        rig = self.calibrator.estimate.for_clip(configured) if self.calibrator is not None else None
+        current = self.calibrator.estimate if self.calibrator is not None else None
+        rig = current.for_clip(configured) if current is not None else None
         clip = rig.apply(configured) if rig is not None else configured
         short = ("time offset not applied: the clip's IMU ends before its frames' moved times"
-                 if rig is not None and self.calibrator.estimate.offset_applied and not rig.offset_applied else "")
+                 if rig is not None and current.offset_applied and not rig.offset_applied else "")
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
         if reason is not None:
             init = InitResult(InitStatus.REJECTED, reason)
