@@ -3,6 +3,8 @@ and the undistortion of a raw clip with it."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from vi3_core.dataset.calib import CameraCalib
@@ -69,8 +71,7 @@ class Calibration:
         if self._intrinsics is not None:
             self._cached = calib_from_camera_info(*self._intrinsics, T_BC)
         else:
-            f = self._file
-            self._cached = CameraCalib(f.K, f.dist_model, f.dist, f.size, T_BC, f.rate_hz)
+            self._cached = dataclasses.replace(self._file, T_BC=T_BC)
         return self._cached
 
 

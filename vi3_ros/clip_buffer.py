@@ -56,6 +56,12 @@ from vi3_core.errors import DataError
 from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, ImuSamples, window_bounds
 
 
+def missing_in_gap(gap: float, interval: float) -> int:
+    """Messages missing in a gap of ``gap`` between two received ones at the nominal ``interval`` (same unit): a gap
+    of k intervals (more than 1.5) counts k - 1."""
+    return round(gap / interval) - 1 if gap > 1.5 * interval else 0
+
+
 @dataclass(frozen=True)
 class ClipBufferOptions:
     """clip_length: frames per clip (n); stride: take every stride-th input frame; hop: input frames between clip starts
@@ -268,8 +274,9 @@ class ClipBuffer:
         if out and not isinstance(out[-1], Rewind):
             return out
         if self._last_image_ns is not None:
-            gap, limit = t - self._last_image_t, self._gap_limit()
-            lost = self._frames_lost(gap)
+            gap, interval = t - self._last_image_t, self._frame_interval()
+            limit = self._gap_limit(interval)
+            lost = missing_in_gap(gap, interval) if interval is not None else 0
             if lost:
                 out.append(self._drop("image_lost", t, t_cam_ns, f"{lost} frame(s) missing before t={t:.6f} s "
                                       f"(gap of {gap:.3f} s)", count=lost))
@@ -328,25 +335,23 @@ class ClipBuffer:
         self._imu_dts.append(gap_ns)
         if (not nominal and len(self._imu_dts) >= 4) or self.imu_samples % 16 == 0:
             self._imu_dt_ns = int(np.median(self._imu_dts))
-        if not nominal or gap_ns <= 1.5 * nominal:
+        lost = missing_in_gap(gap_ns, nominal) if nominal else 0
+        if not lost:
             return []
-        lost = round(gap_ns / nominal) - 1
         return [self._drop("imu_lost", t, stamp_ns, f"{lost} IMU sample(s) missing before t={t:.6f} s (gap of "
                            f"{gap_ns * 1e-9:.4f} s at {1e9 / nominal:.1f} Hz)", count=lost)]
 
-    def _frames_lost(self, gap: float) -> int:
-        """Frames missing in a gap of ``gap`` s: k median intervals count k - 1 (0 while the rate is unknown)."""
-        if len(self._intervals) < 2:
-            return 0
-        median = float(np.median(self._intervals))
-        return round(gap / median) - 1 if gap > 1.5 * median else 0
+    def _frame_interval(self) -> float | None:
+        """s: the median recent frame interval (None while fewer than two are known)."""
+        return float(np.median(self._intervals)) if len(self._intervals) >= 2 else None
 
-    def _gap_limit(self) -> float | None:
+    def _gap_limit(self, interval: float | None) -> float | None:
+        """s: the largest frame gap bridged, given the median frame ``interval`` (``_frame_interval``)."""
         if self.options.max_frame_gap > 0:
             return self.options.max_frame_gap
-        if len(self._intervals) < 2:
+        if interval is None:
             return None
-        return (self.options.stride + 1.5) * float(np.median(self._intervals))  # up to stride frames lost in a row
+        return (self.options.stride + 1.5) * interval  # up to stride frames lost in a row
 
     def _restart(self, t: float, stamp_ns: int, detail: str) -> list[Drop]:
         drops = [self._drop("frame_gap", t, stamp_ns, f"{detail}; open clip from t={c.stamps[0]:.6f} s dropped")

@@ -145,7 +145,7 @@ class FlightOdometry:
             raise DataError(f"parameters: vehicle_frame {fl.vehicle_frame!r} (FLU) is base_frame, whose axes frd_axes "
                             f"{fl.frd_axes!r} says are not FLU: name base_frame after the IMU (e.g. imu0)")
         self.source = fl.flight_odom_source
-        self.keys = [key for key, on in (("px4_odom", fl.px4_odom), ("mavros_odom", fl.mavros_odom)) if on]
+        self.keys = list(fl.outputs_on)
         self.frame_id, self.child_frame_id = settings.frames.odom_frame, fl.vehicle_frame
         self.max_scale_sigma = settings.init.max_scale_sigma
         self.types, self._publish, self._clock = types, publish, clock

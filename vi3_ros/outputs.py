@@ -64,9 +64,7 @@ DIAG_NAME = "vi3: pipeline"
 def published_outputs(settings: Settings) -> dict[str, Output]:
     """The outputs a stream with ``settings`` publishes: every one of OUTPUTS, and those of FLIGHT_TYPES that are on
     (``px4_odom``, ``mavros_odom``) on their topics."""
-    fl = settings.flight
-    flight = {"px4_odom": (fl.px4_odom, fl.px4_odom_topic), "mavros_odom": (fl.mavros_odom, fl.mavros_odom_topic)}
-    return OUTPUTS | {key: Output(topic, FLIGHT_TYPES[key]) for key, (on, topic) in flight.items() if on}
+    return OUTPUTS | {key: Output(topic, FLIGHT_TYPES[key]) for key, topic in settings.flight.outputs_on.items()}
 
 
 def stream_keys(settings: Settings) -> frozenset[str]:

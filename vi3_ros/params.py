@@ -22,6 +22,7 @@ import yaml
 
 from vi3_core.anchor.options import MODES, AnchorOptions
 from vi3_core.backbones import BACKBONES
+from vi3_core.dataset.calib import MAX_TIME_OFFSET_S
 from vi3_core.errors import DataError
 from vi3_core.init.options import SCALE_SOLVERS, InitOptions
 from vi3_core.online.calibration import CalibrationOptions
@@ -200,7 +201,7 @@ PARAMS: tuple[Param, ...] = (
           "smaller one is bridged: a lost frame a clip needs is replaced by the next); 0: automatic ((stride + 1.5) x "
           "the median recent frame interval: up to stride frames lost in a row are bridged)", range=(0.0, 60.0)),
     Param("time_offset", ClipBufferOptions, "s; camera-IMU time offset, t_imu = t_cam + "
-            "time_offset (Kalibr timeshift_cam_imu)", range=(-1.0, 1.0)),
+            "time_offset (Kalibr timeshift_cam_imu)", range=(-MAX_TIME_OFFSET_S, MAX_TIME_OFFSET_S)),
     Param("imu_buffer", ClipBufferOptions, "IMU samples kept (bounded buffer)",
             range=(16, 1_000_000)),
     Param("imu_timeout", ClipBufferOptions, "s of camera time a complete clip waits for IMU while no IMU sample "
@@ -277,13 +278,8 @@ def unknown_parameter(name: str) -> str:
     return f"unknown parameter {name!r}" + (f" (did you mean {close[0]!r}?)" if close else "")
 
 
-def defaults() -> dict[str, Any]:
-    """Every parameter at its default (parameter values, e.g. ``hop`` 0)."""
-    return {p.name: p.default for p in PARAMS}
-
-
-def resolve(overrides: dict[str, Any] | None = None, base: Settings | None = None) -> Settings:
-    """``base`` (default: every default) with ``overrides`` (parameter name -> value), each checked
+def resolve(overrides: dict[str, Any] | None = None) -> Settings:
+    """Every setting at its default but ``overrides`` (parameter name -> value), each checked
     (``Param.check``); an unknown name, a bad value or a combination an options class refuses is a DataError naming
     the parameter."""
     changes = {}
@@ -293,7 +289,7 @@ def resolve(overrides: dict[str, Any] | None = None, base: Settings | None = Non
         p = BY_NAME[name]
         changes[name] = p.field_value(p.check(value))
     try:
-        return (base or Settings()).replace(**changes)
+        return Settings().replace(**changes)
     except ValueError as exc:  # an options class's own check across its fields
         raise DataError(f"parameters: {exc}") from None
 

@@ -83,7 +83,7 @@ def buffer_options(settings: Settings) -> ClipBufferOptions:
         raise DataError(f"parameters: shared_frames {shared} must be smaller than clip_length {opts.clip_length}")
     history = max(opts.imu_history, settings.online.online_max_bridge)
     span = history + (opts.clip_length - 1) * opts.stride * 0.2 + opts.imu_timeout + 1.0  # a clip at 5 Hz or faster
-    hop = opts.hop if opts.hop is not None else (opts.clip_length - shared) * opts.stride
+    hop = opts.hop if opts.hop is not None else settings.online.clip_hop(opts.clip_length, opts.stride)
     return dataclasses.replace(opts, imu_history=history, hop=hop,
                                imu_buffer=max(opts.imu_buffer, int(span * MAX_IMU_RATE_HZ)))
 
@@ -126,9 +126,8 @@ class Pipeline:
         self._clock = clock
         self._epoch = 0  # the buffer epoch of the clips the stream estimator has seen (worker side)
         self._rewind = ""  # why time went back, last time it did
-        fl = settings.flight
         self.flight = FlightOdometry(settings, types=types, publish=self._publish, clock=clock) \
-            if fl.px4_odom or fl.mavros_odom else None
+            if settings.flight.outputs_on else None
         self.outputs = ClipPublisher(settings, types=types, publish=self._publish, flight=self.flight)
         self.imu_odom = ImuOdometry(settings, types=types, publish=self._publish, flight=self.flight) \
             if settings.stream.online and settings.outputs.imu_odom_rate > 0 else None

@@ -48,7 +48,8 @@ from vi3_core.anchor.options import MODES
 from vi3_core.dataset.asl import find_mav0
 from vi3_core.dataset.calib import CameraCalib, load_calib
 from vi3_core.errors import CalibrationError, DataError, Vi3Error
-from vi3_core.eval.report import GYRO_FAILURE, gyro_check_hint
+from vi3_core.eval.report import gyro_check_hint
+from vi3_core.init.initializer import GYRO_FAILURE
 from vi3_core.online.calibration import RigEstimate
 from vi3_core.paths import check_apart
 from vi3_core.types import ImuSamples
@@ -526,15 +527,10 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
 
 
 class DiscardSink:
-    """OutputSink that keeps nothing (``replay_rig``: the pipeline runs for its state, not its messages); counts
-    what it was given per output key."""
-
-    def __init__(self, types: MessageTypes) -> None:
-        self.types = types
-        self.counts: Counter[str] = Counter()
+    """OutputSink that keeps nothing (``replay_rig``: the pipeline runs for its state, not its messages)."""
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
-        self.counts[key] += 1
+        pass
 
 
 @dataclass
@@ -559,7 +555,7 @@ def replay_rig(input_path: str | Path, *, settings: Settings, progress: bool = T
     settings = input_settings(input_path, settings, on_note=on_note).replace(mode="init", online=True,
                                                                           self_calibration=True)
     summary, types = ReplaySummary(), jazzy_types()
-    sink = DiscardSink(types)
+    sink = DiscardSink()
     pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=True,
                              on_report=lambda r: _record_report(summary, r))
     start = time.perf_counter()

@@ -90,6 +90,11 @@ class FlightOptions:
         if not self.vehicle_frame.strip("/"):
             raise ValueError("vehicle_frame is empty: name the vehicle's FLU body frame (MAVROS's base_link)")
 
+    @property
+    def outputs_on(self) -> dict[str, str]:
+        """The flight controllers' outputs that are on (``px4_odom``, ``mavros_odom``, in that order) -> topic."""
+        return {key: getattr(self, f"{key}_topic") for key in ("px4_odom", "mavros_odom") if getattr(self, key)}
+
 
 @dataclass(frozen=True)
 class ModelOptions:
@@ -106,7 +111,7 @@ class ModelOptions:
 @dataclass(frozen=True)
 class Settings:
     """Every setting of a stream, by group; ``value(name)`` / ``replace(name=value)`` address one by its parameter
-    name (``vi3_ros.params.group_of`` knows its group)."""
+    name (``group_attr`` knows its group)."""
 
     inputs: InputOptions = field(default_factory=InputOptions)
     frames: FrameOptions = field(default_factory=FrameOptions)

@@ -23,6 +23,7 @@ from vi3_core.eval import coverage
 from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
 from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
 from vi3_core.eval.clip_eval import ClipEval
+from vi3_core.init.initializer import GYRO_FAILURE
 from vi3_core.types import InitStatus
 
 METRIC_LABELS: dict[str, str] = {
@@ -70,10 +71,6 @@ def paired_columns(evals: Sequence[ClipEval], columns: Sequence[str]) -> dict[st
 def expected_columns(mode: str) -> list[str]:
     """The columns an ok clip has in ``mode``: base, the (fast) init, and the refined mode."""
     return ["base", "init"] + ([mode] if mode != "init" else [])
-
-
-#: How the reason of a clip that failed the gyro check starts (``vi3_core.init.initializer.rotation_failure``).
-GYRO_FAILURE = "backbone failure"
 
 
 def gyro_check_hint(failed: int, total: int) -> str:

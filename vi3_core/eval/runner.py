@@ -139,7 +139,7 @@ def clip_indices(n_frames: int, *, options: EvalOptions, chained: bool = False) 
     its first frames with the clip before it."""
     hop = options.hop
     if hop is None and chained:
-        hop = (options.clip_length - (options.online_options or OnlineOptions()).shared_frames) * options.stride
+        hop = (options.online_options or OnlineOptions()).clip_hop(options.clip_length, options.stride)
     clips = sample_clips(n_frames, n=options.clip_length, stride=options.stride, mode=options.clips, hop=hop)
     if options.max_clips is not None and len(clips) > options.max_clips:
         keep = np.unique(np.linspace(0, len(clips) - 1, options.max_clips).round().astype(int))

@@ -239,9 +239,13 @@ def _paper_scale(inertial: _Inertial, T_BC: np.ndarray, options: InitOptions) ->
     return result
 
 
+#: how the reason of a clip whose backbone rotations disagree with the gyro starts (``rotation_failure``)
+GYRO_FAILURE = "backbone failure"
+
+
 def rotation_failure(worst_deg: float, i: int, j: int, limit_deg: float) -> str:
     """The reason of a clip whose backbone rotations disagree with the bias-corrected gyro."""
-    return (f"backbone failure: its relative rotation between frames {i} and {j} disagrees with the bias-corrected "
+    return (f"{GYRO_FAILURE}: its relative rotation between frames {i} and {j} disagrees with the bias-corrected "
             f"gyro by {worst_deg:.2f} deg (max_rotation_error {limit_deg} deg)")
 
 

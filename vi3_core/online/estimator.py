@@ -310,8 +310,7 @@ class OnlineEstimator:
         measured, link_note = self._link(clip, geometry, own.sigma_v)
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
                         sigma_v=own.sigma_v, lam=own.lam, v=np.asarray(own.v1), g=np.asarray(free.g),
-                        link=measured.link if measured else None,
-                        link_to=measured.clip_start if measured else float("nan"))
+                        link=measured)
         reset, self._reset = self._restart_reason(t1, t_end) or self._reset, ""
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)

@@ -57,6 +57,11 @@ class OnlineOptions:
             raise ValueError(f"OnlineOptions: {', '.join(bad) or 'online_consistency_p < 1, online_max_clips >= 2'} "
                              f"violated by {self}")
 
+    def clip_hop(self, clip_length: int, stride: int) -> int:
+        """Input frames between clip starts when none is set: (clip_length - shared_frames) * stride, so each clip
+        starts with the last shared_frames frames of the one before."""
+        return (clip_length - self.shared_frames) * stride
+
     @property
     def imu_keep_s(self) -> float:
         """s of IMU the estimator keeps: a window plus the longest bridge before it."""

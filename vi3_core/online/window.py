@@ -23,10 +23,10 @@ from vi3_core.fit import (
     ImuNoiseModel,
     MetricFit,
     PriorLayout,
-    ScaleLink,
     fit_stamps,
     marginalise,
 )
+from vi3_core.online.link import MeasuredLink
 from vi3_core.preintegration import preintegrate
 from vi3_core.types import ImuSamples
 
@@ -37,8 +37,8 @@ BA_FLOOR = 0.01  # m/s^2: no window's accelerometer-bias estimate is carried acr
 class Member:
     """A clip in the window: stamps [n] s; T_wc [n,4,4] backbone camera poses in its first camera frame (model units);
     sigma_v: its visual noise (model units, per axis, from its own fit); its latest estimates in its own first body
-    frame: lam (1 / scale; NaN: none yet), v [3] m/s, g [3] m/s^2; and its scale link to the clip that started at
-    ``link_to`` s (None: unlinked), which the fit uses when that clip is the member before it."""
+    frame: lam (1 / scale; NaN: none yet), v [3] m/s, g [3] m/s^2; and its scale link (None: unlinked) to the clip
+    that started at ``link.clip_start`` s, which the fit uses when that clip is the member before it."""
 
     stamps: np.ndarray
     T_wc: np.ndarray
@@ -46,8 +46,7 @@ class Member:
     lam: float
     v: np.ndarray
     g: np.ndarray
-    link: ScaleLink | None = None
-    link_to: float = float("nan")
+    link: MeasuredLink | None = None
 
 
 @dataclass
@@ -106,7 +105,8 @@ class Window:
         clips = [FitClip(m.stamps, m.T_wc, m.sigma_v) for m in members]
         stamps = fit_stamps(clips)
         pre = preintegrate(imu.window(float(stamps[0]), float(stamps[-1])), stamps, bg, jacobians=True)
-        links = [m.link if m.link_to == float(prev.stamps[0]) else None for prev, m in zip(members, members[1:])]
+        links = [m.link.link if m.link is not None and m.link.clip_start == float(prev.stamps[0]) else None
+                 for prev, m in zip(members, members[1:])]
         fit = MetricFit(clips, pre, T_BC, noise=self.noise, gravity_norm=self.G, bg_sigma=bg_sigma, scale_links=links,
                         estimate_walk=self.visual_drift)
         R0 = [pre.R[b.first] for b in fit.blocks]
