@@ -222,6 +222,9 @@ def main(args: list[str] | None = None) -> int:
         node = None
         try:
             rclpy.init(args=args if args is not None else sys.argv)
+            # The executor spin uses, built before the node says it is up: a signal while rclpy built it lazily
+            # inside spin left a half-built executor whose __del__ printed a traceback.
+            rclpy.get_global_executor()
             node = Vi3Node()
             rclpy.spin(node)
         except Vi3Error as exc:
