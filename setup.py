@@ -36,6 +36,13 @@ setup(
         "simplejpeg>=1.7",
     ],
     extras_require={
+        # vi3_node without a sourced ROS 2: rclpy, Fast DDS and the message packages the node uses, as PyPI's ROS 2
+        # Jazzy wheels (Linux x86-64, CPython 3.10-3.12; elsewhere source a ROS 2 Jazzy instead). tf2_msgs has no wheel:
+        # /tf is then not published (the node says so at start). Pinned: they are one distribution's build.
+        "ros": [f"ros-jazzy-{name}=={version}; platform_system == 'Linux' and platform_machine == 'x86_64'"
+                for name, version in (("rclpy", "7.1.6"), ("rmw-fastrtps-cpp", "8.4.3"), ("std-msgs", "5.3.6"),
+                                      ("sensor-msgs", "5.3.6"), ("geometry-msgs", "5.3.6"), ("nav-msgs", "5.3.6"),
+                                      ("diagnostic-msgs", "5.3.6"))],
         # vi3 eval --ray: evaluation on a Ray cluster (vi3_core.eval.distributed); in the test extra so the suite
         # covers it.
         "ray": ["ray>=2.9"],

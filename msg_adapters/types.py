@@ -19,6 +19,7 @@ from __future__ import annotations
 import abc
 import array
 import functools
+import importlib
 from collections.abc import Callable
 from typing import Any
 
@@ -57,10 +58,10 @@ class MessageTypes(abc.ABC):
 
     @classmethod
     def from_rclpy(cls) -> MessageTypes:
-        """Resolver over the installed ROS 2 message packages; imports ``rosidl_runtime_py`` only here."""
-        from rosidl_runtime_py.utilities import get_message
-
-        return _RclpyTypes(get_message)
+        """Resolver over the installed ROS 2 message packages: ``"pkg/msg/Name"`` is ``Name`` of the generated module
+        ``pkg.msg``, imported on first use (what ``rosidl_runtime_py.utilities.get_message`` does, without that
+        package, which no PyPI wheel provides)."""
+        return _RclpyTypes(_generated_message)
 
     def get(self, name: str) -> type:
         """The message class of ``name`` ("sensor_msgs/msg/Image" or "sensor_msgs/Image"), cached."""
@@ -110,8 +111,17 @@ class _RosbagsTypes(MessageTypes):
         return int(value)
 
 
+def _generated_message(full: str) -> type:
+    """The rclpy class of ``"pkg/msg/Name"`` from the package's generated Python module."""
+    package, _, name = full.split("/")
+    cls = getattr(importlib.import_module(f"{package}.msg"), name)
+    if not isinstance(cls, type):
+        raise AttributeError(f"{package}.msg.{name} is not a message class")
+    return cls
+
+
 class _RclpyTypes(MessageTypes):
-    """Runs only where ROS 2 is installed (not exercised by the tests on development machines)."""
+    """Over the generated Python messages of the ROS 2 packages installed (PyPI wheels or a sourced ROS 2)."""
 
     backend = "rclpy"
 

@@ -74,6 +74,11 @@ class ImuSamples:
         ``window_bounds``."""
         return self.select(slice(*window_bounds(self.t, t0, t1, margin)))
 
+    def covers(self, t0: float, t1: float) -> bool:
+        """Whether the samples cover [t0, t1] as a clip needs: one at or before t0 and one at or after t1
+        (``window_bounds``)."""
+        return len(self.t) > 0 and self.t[0] <= t0 and self.t[-1] >= t1
+
     def shifted(self, dt: float) -> ImuSamples:
         """The samples with their stamps moved by ``dt`` s (onto another clock; ``t_ns`` by dt rounded to ns)."""
         t_ns = None if self.t_ns is None else self.t_ns + round(dt * 1e9)

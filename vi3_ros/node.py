@@ -25,6 +25,7 @@ while a clip is in the backbone: the clip's outputs are discarded and the worker
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -46,7 +47,7 @@ from msg_adapters.types import MessageTypes
 from vi3_core.dataset.calib import load_calib
 from vi3_core.errors import DataError, Vi3Error
 from vi3_ros import interrupts
-from vi3_ros.io.topics import IMAGE_TRANSPORTS
+from vi3_ros.io.topics import IMAGE_TRANSPORTS, TF_TYPE
 from vi3_ros.outputs import published_outputs
 from vi3_ros.params import NODE_NAME, PARAMS, Param, resolve, unknown_parameter
 from vi3_ros.pipeline import MAX_IMU_RATE_HZ, Pipeline, make_pipeline
@@ -87,7 +88,7 @@ class _PublisherSink:
 
     def __init__(self, node: Node, types: MessageTypes, settings: Settings) -> None:
         self.context = node.context
-        self.publishers = {key: node.create_publisher(_message_class(types, out.msgtype), out.topic, RELIABLE)
+        self.publishers = {key: node.create_publisher(_message_class(types, out.msgtype, key), out.topic, RELIABLE)
                            for key, out in published_outputs(settings).items()}
 
     def publish(self, key: str, msg: Any, stamp_ns: int) -> None:
@@ -95,14 +96,41 @@ class _PublisherSink:
             self.publishers[key].publish(msg)
 
 
-def _message_class(types: MessageTypes, msgtype: str) -> type:
-    """The class of ``msgtype``; a message package that is not installed (px4_msgs) is a DataError saying so."""
+def _without_missing_tf(settings: Settings, types: MessageTypes) -> tuple[Settings, str]:
+    """``settings`` with ``publish_tf`` and ``publish_odom_tf`` off, and a warning naming why, where tf2_msgs (which
+    no PyPI wheel provides) is not installed; else ``settings`` and ""."""
+    frames = settings.frames
+    if not (frames.publish_tf or frames.publish_odom_tf):
+        return settings, ""
+    try:
+        types.get(TF_TYPE)
+    except UnknownMessageType:
+        off = dataclasses.replace(frames, publish_tf=False, publish_odom_tf=False)
+        return dataclasses.replace(settings, frames=off), (
+            f"publish_tf / publish_odom_tf: /tf is not published, {_not_installed(TF_TYPE)}; ~/odom, ~/poses and "
+            "~/points carry the same poses")
+    return settings, ""
+
+
+def _not_installed(msgtype: str) -> str:
+    return f"{msgtype} is unknown: the package {msgtype.split('/')[0]} is not installed or not sourced"
+
+
+#: What to do about a message package that is not installed, by the parameter that needs it.
+_INSTALL_HINT = {"px4_odom": "px4_odom needs PX4's px4_msgs, built in the workspace from the branch of your PX4 "
+                             "release",
+                 "use_tf_static": "use_tf_static needs tf2_msgs, which no PyPI wheel provides: source a ROS 2 that has "
+                                  "it, or give the camera pose in calib_file"}
+
+
+def _message_class(types: MessageTypes, msgtype: str, key: str) -> type:
+    """The class of ``msgtype`` (for output or input ``key``); a message package that is not installed (px4_msgs) is
+    a DataError saying so and what needs it."""
     try:
         return types.get(msgtype)
     except UnknownMessageType:
-        package = msgtype.split("/")[0]
-        raise DataError(f"{msgtype} is unknown: the package {package} is not installed or not sourced (px4_odom needs "
-                        "PX4's px4_msgs, built in the workspace from the branch of your PX4 release)") from None
+        hint = _INSTALL_HINT.get(key)
+        raise DataError(_not_installed(msgtype) + (f"; {hint}" if hint else "")) from None
 
 
 def _stamp_or_none(msg: Any) -> int | None:
@@ -116,6 +144,7 @@ class Vi3Node(Node):
     """Parameters, subscriptions, publishers and a diagnostics timer around one Pipeline."""
 
     def __init__(self, **node_kwargs: Any) -> None:
+        self.pipeline: Pipeline | None = None  # until built: rclpy may destroy a node whose start failed
         super().__init__(NODE_NAME, **node_kwargs)
         for p in PARAMS:
             self.declare_parameter(p.name, p.default, descriptor(p))
@@ -128,8 +157,13 @@ class Vi3Node(Node):
             if note:
                 self.get_logger().warning(note)
         self.types = types = MessageTypes.from_rclpy()
+        tf_static_type = _message_class(types, TF_TYPE, "use_tf_static") if self.settings.inputs.use_tf_static \
+            else None
+        self.settings, note = _without_missing_tf(self.settings, types)
+        if note:
+            self.get_logger().warning(note)
         self.sink = _PublisherSink(self, types, self.settings)
-        self.pipeline: Pipeline = make_pipeline(self.settings, sink=self.sink, types=types,
+        self.pipeline = make_pipeline(self.settings, sink=self.sink, types=types,
                                                 clock=lambda: self.get_clock().now().nanoseconds)
         inputs = self.settings.inputs
         self.image_topic = self.resolve_topic_name(inputs.image_topic)
@@ -146,9 +180,8 @@ class Vi3Node(Node):
         if inputs.camera_info_topic:
             self.create_subscription(types.get("sensor_msgs/msg/CameraInfo"), inputs.camera_info_topic,
                                      self._on_camera_info, sensor_qos(MAX_CAMERA_RATE_HZ))
-        if inputs.use_tf_static:
-            self.create_subscription(types.get("tf2_msgs/msg/TFMessage"), "/tf_static", self._on_tf_static,
-                                     TF_STATIC)
+        if tf_static_type is not None:
+            self.create_subscription(tf_static_type, "/tf_static", self._on_tf_static, TF_STATIC)
         self.create_timer(self.settings.outputs.diagnostics_period, self._on_timer)
         model = self.settings.model
         self.get_logger().info(f"vi3_node: backbone {model.backbone} on {model.device}, mode "
@@ -207,8 +240,26 @@ class Vi3Node(Node):
         self.pipeline.publish_diagnostics(self.get_clock().now().nanoseconds)
 
     def destroy_node(self) -> None:
-        self.pipeline.close(timeout=SHUTDOWN_WAIT_S)
+        if self.pipeline is not None:
+            self.pipeline.close(timeout=SHUTDOWN_WAIT_S)
         super().destroy_node()
+
+
+def _start(args: list[str]) -> Vi3Node | None:
+    """rclpy and the node, or None when it cannot start: then one log line names the cause (a Vi3Error says it
+    itself; anything else, such as a broken message package, by its type and message), never a traceback."""
+    try:
+        rclpy.init(args=args)
+        # The executor spin uses, built before the node says it is up: a signal while rclpy built it lazily
+        # inside spin left a half-built executor whose __del__ printed a traceback.
+        rclpy.get_global_executor()
+        return Vi3Node()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        raise
+    except Exception as exc:  # every start failure is one line and exit status 2
+        why = str(exc) if isinstance(exc, Vi3Error) else f"{type(exc).__name__}: {exc}"
+        rclpy.logging.get_logger(NODE_NAME).fatal("cannot start: " + " ".join(why.split()))
+        return None
 
 
 def main(args: list[str] | None = None) -> int:
@@ -221,17 +272,11 @@ def main(args: list[str] | None = None) -> int:
     with interrupts.trapped((signal.SIGINT, signal.SIGTERM)):
         node = None
         try:
-            rclpy.init(args=args if args is not None else sys.argv)
-            # The executor spin uses, built before the node says it is up: a signal while rclpy built it lazily
-            # inside spin left a half-built executor whose __del__ printed a traceback.
-            rclpy.get_global_executor()
-            node = Vi3Node()
-            rclpy.spin(node)
-        except Vi3Error as exc:
-            if node is not None:
-                raise
-            rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")  # no traceback
-            status = 2
+            node = _start(args if args is not None else sys.argv)
+            if node is None:
+                status = 2
+            else:
+                rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass  # SIGINT / SIGTERM, also while starting: a normal end
         finally:

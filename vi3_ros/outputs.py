@@ -62,9 +62,11 @@ DIAG_NAME = "vi3: pipeline"
 
 
 def published_outputs(settings: Settings) -> dict[str, Output]:
-    """The outputs a stream with ``settings`` publishes: every one of OUTPUTS, and those of FLIGHT_TYPES that are on
-    (``px4_odom``, ``mavros_odom``) on their topics."""
-    return OUTPUTS | {key: Output(topic, FLIGHT_TYPES[key]) for key, topic in settings.flight.outputs_on.items()}
+    """The outputs a stream with ``settings`` publishes: those of OUTPUTS (/tf only with ``publish_tf`` or
+    ``publish_odom_tf``), and those of FLIGHT_TYPES that are on (``px4_odom``, ``mavros_odom``) on their topics."""
+    tf_on = settings.frames.publish_tf or settings.frames.publish_odom_tf
+    own = {key: out for key, out in OUTPUTS.items() if key != "tf" or tf_on}
+    return own | {key: Output(topic, FLIGHT_TYPES[key]) for key, topic in settings.flight.outputs_on.items()}
 
 
 def stream_keys(settings: Settings) -> frozenset[str]:

@@ -23,7 +23,7 @@ import yaml
 from vi3_core.anchor.options import MODES, AnchorOptions
 from vi3_core.backbones import BACKBONES
 from vi3_core.dataset.calib import MAX_TIME_OFFSET_S
-from vi3_core.errors import DataError
+from vi3_core.errors import DataError, yaml_problem
 from vi3_core.init.options import SCALE_SOLVERS, InitOptions
 from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.online.options import OnlineOptions
@@ -309,8 +309,10 @@ def load_yaml(path: str | Path, *, node: str = NODE_NAME) -> dict[str, Any]:
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise DataError(f"cannot read parameter file {path}: {exc}") from exc
+    except OSError as exc:
+        raise DataError(f"cannot read parameter file {path}: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise DataError(f"parameter file {path}: not valid YAML: {yaml_problem(exc)}") from None
     for key in (node, f"/{node}", "/**"):
         section = (doc or {}).get(key) if isinstance(doc, dict) else None
         if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):

@@ -143,3 +143,36 @@ def test_a_recording_whose_gt_starts_after_its_images_end_is_a_clear_error(euroc
     assert code == 2 and stdout == "" and not (tmp_path / "out").exists()
     assert stderr.startswith(f"vi3 make-bag: error: {euroc_fixture}: the IMU [") and \
         stderr.endswith("ns share less than one camera period\n")
+
+
+def test_a_ground_truth_value_that_is_not_a_number_is_named_by_file_and_row(euroc_v102, tmp_path, capsys):
+    """Issue 31: a NaN in the GT CSV was scipy's "`y` must contain only finite values." traceback (exit 1). Now one
+    line naming the file, the row (counted after the header) and the column; nothing written."""
+    recording = _cut(euroc_v102, tmp_path / "rec" / "mav0", gt_before_ns=0, gt_after_ns=0)
+    gt_csv = recording / "state_groundtruth_estimate0" / "data.csv"
+    lines = gt_csv.read_text().splitlines(keepends=True)
+    cells = lines[7].split(",")
+    lines[7] = ",".join([cells[0], cells[1], "nan", *cells[3:]])
+    gt_csv.write_text("".join(lines))
+    code = cli.main(["make-bag", str(tmp_path / "out"), "--from-euroc", str(recording), "--no-depth"])
+    stdout, stderr = capsys.readouterr()
+    assert code == 2 and stdout == "" and not (tmp_path / "out").exists()
+    assert stderr == f"vi3 make-bag: error: {gt_csv}: row 7: 'nan' in column 3 is not a finite number\n"
+
+
+def test_a_clip_without_the_imu_it_needs_is_skipped_and_named_and_the_run_goes_on(euroc_v102, tmp_path, capsys):
+    """Issue 31: frames from the IMU's first sample on, evaluated with the IMU 20 ms late (``--calib-error
+    0,0,0,20``): the first clip has no IMU at or before its first frame. It was "IMU of ... does not cover the clip",
+    exit 2, no clip evaluated; now that clip is skipped as the node skips it (``imu_missing``), named in the JSON and
+    the text, and every other clip is evaluated."""
+    recording = _cut(euroc_v102, tmp_path / "rec" / "mav0", gt_before_ns=0, gt_after_ns=0)
+    _make_bag(recording, tmp_path / "out", capsys)
+    asl = tmp_path / "out" / "asl"
+    args = ["eval", str(asl), "--calib-error", "0,0,0,20", "--no-progress"]
+    assert cli.main([*args, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    n = len(clip_indices(len(read_asl(asl)), options=EvalOptions(clips="sliding"), chained=True))
+    (skipped,) = report["skipped_clips"]
+    assert skipped["reason"] == "imu_missing" and skipped["frames"][0] == 0 and report["n_clips"] == n - 1 >= 2
+    assert cli.main(args) == 0
+    assert f"skipped: frames 0-{skipped['frames'][1]} (imu_missing)" in capsys.readouterr().out

@@ -7,6 +7,7 @@ observes nothing, so nothing replaces the configuration."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -170,3 +171,16 @@ def test_an_applied_estimate_moves_the_imu_not_the_frames_and_needs_the_imu_hist
     assert used.rotation_applied and not used.offset_applied
     kept = used.apply(short)
     assert kept.imu is short.imu and not np.allclose(kept.T_BC, clip.T_BC)
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    ("1000,0,0", "the rotation (RX, RY, RZ) is 1000 deg about its axis; give one of at most 180 deg"),
+    ("150,150,0", "is 212.132 deg about its axis"),
+    ("0,0,0,1500", "IMU_DELAY_MS 1500 is outside [-1000, 1000] ms"),
+    ("3,0", "expected RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS], finite"),
+])
+def test_a_calibration_error_outside_what_it_can_mean_is_refused(text, expected):
+    """Issue 31: ``--calib-error 1000,0,0`` was accepted (a rotation vector longer than 180 deg is a shorter one)."""
+    with pytest.raises(ValueError, match=re.escape(expected)):
+        RigError.parse(text)
+    assert RigError.parse("-180,0,0,-1000").rotation_deg == (-180.0, 0.0, 0.0)

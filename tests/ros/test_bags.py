@@ -122,16 +122,30 @@ def test_make_bag_is_deterministic_and_opens(tmp_path):
     assert (a / pngs[0].relative_to(a)).read_bytes() != (b / pngs[0].relative_to(a)).read_bytes()
 
 
+#: How far data generated on another CPU may be from this one's (the bundled bag was made on one machine and is
+#: regenerated on any): NumPy's SIMD dispatch and the BLAS kernels give other last bits on a CPU without AVX-512 (seen:
+#: gyro up to 4.4e-16 rad/s, accelerometer 3.6e-15 m/s^2, GT poses 5.6e-16), so floats get 1e-12 absolute on values of
+#: order 1-10; an image may differ by one grey level where the rendering lands on a rounding boundary, in at most one
+#: pixel in 10^4 (none seen). Stamps (integer ns) stay exact.
+CROSS_CPU_ATOL = 1e-12
+CROSS_CPU_PIXELS = 1e-4
+
+
 def test_bundled_bag_is_the_make_bag_sequence(cache_dir):
-    """bags/vi3_demo is the MCAP of ``vi3 make-bag --seconds 1.8 --seed 0``: regenerating it gives the same data."""
+    """bags/vi3_demo is the MCAP of ``vi3 make-bag --seconds 1.8 --seed 0``: regenerating it on any CPU gives the same
+    data, within CROSS_CPU_ATOL and CROSS_CPU_PIXELS."""
     path = Path(__file__).resolve().parents[2] / "bags" / "vi3_demo"
     seq = open_sequence(path)
     assert sum(f.stat().st_size for f in path.parent.rglob("*") if f.is_file()) <= 15e6
     assert len(seq) == 37 and seq.calib is not None and seq.gt is not None
     fresh = read_asl(cached_sequence(cache_dir, seconds=1.8, seed=0, with_depth=False))
-    assert np.array_equal(seq.stamps_ns, fresh.stamps_ns) and np.array_equal(seq.imu.gyro, fresh.imu.gyro)
+    assert np.array_equal(seq.stamps_ns, fresh.stamps_ns) and np.array_equal(seq.imu_ns, fresh.imu_ns)
+    np.testing.assert_allclose(seq.imu.gyro, fresh.imu.gyro, rtol=0, atol=CROSS_CPU_ATOL)
+    np.testing.assert_allclose(seq.imu.accel, fresh.imu.accel, rtol=0, atol=CROSS_CPU_ATOL)
+    np.testing.assert_allclose(seq.gt.T_WB, fresh.gt.T_WB, rtol=0, atol=CROSS_CPU_ATOL)
     for i in (0, 18, 36):
-        assert np.array_equal(seq.image(i), fresh.image(i))
+        diff = np.abs(seq.image(i).astype(np.int16) - fresh.image(i))
+        assert diff.max() <= 1 and np.count_nonzero(diff) <= CROSS_CPU_PIXELS * diff.size, i
 
 
 def test_merge_by_time_is_the_record_order():

@@ -17,6 +17,7 @@ from vi3_core.dataset.generate import EUROC_CAM0
 from vi3_core.errors import CalibrationError, DataError
 from vi3_core.init import InitOptions
 from vi3_core.online import OnlineOptions
+from vi3_ros import cli
 from vi3_ros.calibration import Calibration, calib_from_camera_info
 from vi3_ros.clip_buffer import ClipBufferOptions
 from vi3_ros.commands.replay import register, settings_from_args
@@ -95,6 +96,16 @@ def test_bad_parameter_file(tmp_path):
     bad.write_text("other_node:\n  ros__parameters: {}\n")
     with pytest.raises(DataError, match="no 'vi3_node: ros__parameters:'"):
         load_yaml(bad)
+
+
+def test_a_parameter_file_that_is_not_yaml_is_one_line_naming_file_line_and_column(tmp_path, capsys):
+    """Issue 31: a YAML syntax error ended the message with PyYAML's caret lines; now one line (``vi3 eval``)."""
+    bad = tmp_path / "p.yaml"
+    bad.write_text("vi3_node:\n  ros__parameters:\n    clip_length: [8\n    mode: init\n")
+    assert cli.main(["eval", str(tmp_path), "--params-file", str(bad), "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err == (f"vi3 eval: error: parameter file {bad}: not valid YAML: line 4, column 9: expected "
+                                 "',' or ']', but got ':' (while parsing a flow sequence from line 3, column 18)\n")
 
 
 def test_replay_cli_precedence(tmp_path):

@@ -34,7 +34,7 @@ import yaml
 from vi3_core import so3
 from vi3_core.dataset.calib import CameraCalib, load_calib, write_euroc_sensor_yaml
 from vi3_core.dataset.sequence import GroundTruthTrack, Sequence
-from vi3_core.errors import DataError
+from vi3_core.errors import DataError, yaml_problem
 from vi3_core.paths import missing_reason
 from vi3_core.sim.imu import ImuNoise
 from vi3_core.types import ImuSamples
@@ -93,16 +93,19 @@ def read_csv(path: Path, *, columns: int, first: str = "#timestamp") -> tuple[np
     return np.array([ns for ns, _ in rows], dtype=np.int64), [cells for _, cells in rows]
 
 
-def iter_samples(path: Path, *, columns: int) -> Iterator[tuple[int, np.ndarray]]:
+def iter_samples(path: Path, *, columns: int, finite: bool = False) -> Iterator[tuple[int, np.ndarray]]:
     """The rows of a numeric EuRoC csv (IMU, ground truth) as (stamp ns, [columns-1] float64 values), checked as they
-    come: DataError naming the file and row when it has no row at all, a value is not a number or a stamp is not
-    after the previous one (a file must be sorted by time)."""
+    come: DataError naming the file and row when it has no row at all, a value is not a number (with ``finite``: not
+    a finite number) or a stamp is not after the previous one (a file must be sorted by time)."""
     last = None
     for row_no, ns, cells in iter_csv(path, columns=columns):
         try:
             values = np.array([float(c) for c in cells])
         except ValueError as err:
             raise DataError(f"{path}: row {row_no}: non-numeric value ({err})") from None
+        if finite and not np.all(np.isfinite(values)):
+            col = int(np.argmin(np.isfinite(values)))
+            raise DataError(f"{path}: row {row_no}: {cells[col]!r} in column {col + 2} is not a finite number")
         if last is not None and ns <= last:
             raise DataError(f"{path}: its stamps are not increasing (unsorted, or a row repeated): row {row_no} "
                             f"at {ns} ns follows {last} ns; sort the file by timestamp")
@@ -112,11 +115,11 @@ def iter_samples(path: Path, *, columns: int) -> Iterator[tuple[int, np.ndarray]
         raise DataError(f"{path}: no samples (a header and no rows)")
 
 
-def _read_samples(path: Path, columns: int) -> tuple[np.ndarray, np.ndarray]:
+def _read_samples(path: Path, columns: int, *, finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A whole numeric EuRoC csv (``iter_samples``): ([R] int64 ns, [R, columns-1] float64), filled into arrays that
     double when full (at most twice the result's memory)."""
     ns, values, n = np.empty(1024, np.int64), np.empty((1024, columns - 1)), 0
-    for t, v in iter_samples(path, columns=columns):
+    for t, v in iter_samples(path, columns=columns, finite=finite):
         if n == len(ns):
             ns, values = np.resize(ns, 2 * n), np.resize(values, (2 * n, columns - 1))
         ns[n], values[n] = t, v
@@ -164,7 +167,7 @@ def _depth_meta(path: Path, K_undistorted: np.ndarray) -> tuple[float, bool]:
     try:
         doc = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
-        raise DataError(f"{path}: not valid YAML ({err})") from None
+        raise DataError(f"{path}: not valid YAML: {yaml_problem(err)}") from None
     if not isinstance(doc, dict):
         raise DataError(f"{path}: expected a YAML mapping, got {type(doc).__name__}")
     try:
@@ -235,11 +238,12 @@ def read_imu(mav0: Path) -> tuple[np.ndarray, ImuSamples]:
 
 
 def read_groundtruth(mav0: Path) -> GroundTruthTrack | None:
-    """state_groundtruth_estimate0/data.csv -> track (None when the folder is absent)."""
+    """state_groundtruth_estimate0/data.csv -> track (None when the folder is absent); DataError naming the row when a
+    value is not a finite number (the truth has no gaps to fill: a NaN is a broken file)."""
     path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     if not path.parent.is_dir():
         return None
-    ns, vals = _read_samples(path, 17)
+    ns, vals = _read_samples(path, 17, finite=True)
     q_xyzw = vals[:, [4, 5, 6, 3]]
     T = so3.make_T(so3.quat_to_R(q_xyzw), vals[:, :3])
     return GroundTruthTrack(ns * 1e-9, T, v_WB=vals[:, 7:10], bg=vals[:, 10:13], ba=vals[:, 13:16], t_ns=ns)

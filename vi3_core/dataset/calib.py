@@ -26,7 +26,7 @@ import numpy as np
 import yaml
 
 from vi3_core import so3
-from vi3_core.errors import CalibrationError
+from vi3_core.errors import CalibrationError, yaml_problem
 from vi3_core.paths import missing_reason
 
 DIST_MODELS = ("radtan", "equidistant", "none")
@@ -217,12 +217,12 @@ def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
                                "Kalibr camchain YAML") from None
     except OSError as err:
         raise CalibrationError(f"{path}: cannot read it ({err.strerror})") from None
-    # EuRoC ships some files with OpenCV's "%YAML:1.0" directive, which PyYAML rejects.
-    text = "\n".join(line for line in raw.splitlines() if not line.startswith("%YAML"))
+    # EuRoC ships some files with OpenCV's "%YAML:1.0" directive, which PyYAML rejects (blanked: lines keep numbers).
+    text = "\n".join("" if line.startswith("%YAML") else line for line in raw.splitlines())
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        raise CalibrationError(f"{path}: not valid YAML ({err})") from None
+        raise CalibrationError(f"{path}: not valid YAML: {yaml_problem(err)}") from None
     if not isinstance(doc, dict):
         raise CalibrationError(f"{path}: expected a YAML mapping, got {type(doc).__name__}")
     if "T_BS" in doc:

@@ -132,9 +132,9 @@ def make_clip(seq: Sequence, indices: np.ndarray, *, with_depth: bool = True, hi
     und = seq.calib.undistorter()
     images = (np.stack([und.apply(_fitting_frame(seq, i)) for i in idx]) if with_images
               else np.zeros((len(idx), 0, 0), np.uint8))
-    imu = seq.imu.window(stamps[0], stamps[-1], margin=1)
-    if len(imu) == 0 or imu.t[0] > stamps[0] or imu.t[-1] < stamps[-1]:
+    if not seq.imu.covers(stamps[0], stamps[-1]):
         raise DataError(f"IMU of {seq.name!r} does not cover the clip [{stamps[0]:.6f}, {stamps[-1]:.6f}] s")
+    imu = seq.imu.window(stamps[0], stamps[-1], margin=1)
     gt = None
     if seq.gt is not None and seq.gt.covers(stamps):
         depth = None

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vi3_core import so3
+from vi3_core.dataset.calib import MAX_TIME_OFFSET_S
 from vi3_core.dataset.sequence import Sequence
 from vi3_core.sim.visual import parse_floats
 
@@ -16,7 +17,8 @@ from vi3_core.sim.visual import parse_floats
 @dataclass(frozen=True)
 class RigError:
     """rotation_deg [3]: the true mount is the configured one turned by Exp(rotation) about the body axes (the
-    configuration is off by that); imu_delay_s: the IMU's stamps are this late against the camera's."""
+    configuration is off by that; a rotation vector of at most 180 deg); imu_delay_s: the IMU's stamps are this late
+    against the camera's (at most MAX_TIME_OFFSET_S either way)."""
 
     rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     imu_delay_s: float = 0.0
@@ -24,9 +26,17 @@ class RigError:
     @staticmethod
     def parse(text: str) -> RigError:
         """"RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS]" -> RigError; ValueError naming the text."""
-        values = parse_floats(text, (3, 4), "calibration error", "RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS], finite",
-                              "3,0,0,20")
-        return RigError(tuple(values[:3]), values[3] * 1e-3 if len(values) == 4 else 0.0)
+        form = "RX_DEG,RY_DEG,RZ_DEG[,IMU_DELAY_MS], finite"
+        values = parse_floats(text, (3, 4), "calibration error", form, "3,0,0,20")
+        angle = float(np.linalg.norm(values[:3]))
+        delay_ms = values[3] if len(values) == 4 else 0.0
+        if angle > 180.0:  # a rotation vector: longer ones are the same rotations as shorter ones, so one is asked
+            raise ValueError(f"calibration error {text!r}: the rotation (RX, RY, RZ) is {angle:g} deg about its axis; "
+                             "give one of at most 180 deg (a longer one is a shorter one the other way round)")
+        if abs(delay_ms) > MAX_TIME_OFFSET_S * 1e3:
+            raise ValueError(f"calibration error {text!r}: IMU_DELAY_MS {delay_ms:g} is outside "
+                             f"[-{MAX_TIME_OFFSET_S * 1e3:g}, {MAX_TIME_OFFSET_S * 1e3:g}] ms (time_offset's range)")
+        return RigError(tuple(values[:3]), delay_ms * 1e-3)
 
     @property
     def rotation(self) -> np.ndarray:

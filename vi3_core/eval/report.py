@@ -211,7 +211,9 @@ def format_clips(summary: dict) -> str:
     table = _grid(header, rows).splitlines()
     notes = [f"  {c['reason']}" + (f" | {chained['decisions'][k]}" if chained else "") for k, c in enumerate(clips)]
     body = [line for pair in zip(table[2:], notes) for line in pair]
-    return "\n".join([f"Per clip: {summary['sequence']} (reason | online decision)", *table[:2], *body])
+    skipped = [f"skipped: frames {c['frames'][0]}-{c['frames'][1]} ({c['reason']})"
+               for c in summary.get("skipped_clips", [])]
+    return "\n".join([f"Per clip: {summary['sequence']} (reason | online decision)", *table[:2], *body, *skipped])
 
 
 def format_ablation(summaries: dict[str, dict]) -> str:

@@ -170,14 +170,33 @@ def interrupted_note(done: int, total: int) -> str:
     return f"interrupted: {done} of {total} clips evaluated"
 
 
+#: Why a sampled clip is not evaluated: the node's clip buffer's reason for the same clip.
+IMU_MISSING = "imu_missing"
+
+
 def check_sequence(seq: Sequence, *, options: EvalOptions, chained: bool = False) -> list[np.ndarray]:
-    """The clips ``evaluate_sequence`` (``evaluate_online``: ``chained``) would evaluate; raises DataError when ``seq``
-    cannot be evaluated (no ground truth, no calibration, too short), before any clip is."""
+    """The clips ``evaluate_sequence`` (``evaluate_online``: ``chained``) evaluate: those sampled whose frames the IMU
+    covers (the others, ``imu_missing``, are skipped as the node skips them); raises DataError when ``seq`` cannot be
+    evaluated (no ground truth, no calibration, too short, no clip the IMU covers), before any clip is."""
     if seq.gt is None:
         raise DataError(f"sequence {seq.name!r} has no ground truth; evaluation needs GT poses and velocities")
     if seq.calib is None:
         raise DataError(f"sequence {seq.name!r} has no camera calibration (pass --calib for bags without one)")
-    return clip_indices(len(seq.stamps), options=options, chained=chained)
+    sampled = clip_indices(len(seq.stamps), options=options, chained=chained)
+    covered = [idx for idx in sampled if seq.imu.covers(seq.stamps[idx[0]], seq.stamps[idx[-1]])]
+    if not covered:
+        span = f"[{seq.imu.t[0]:.6f}, {seq.imu.t[-1]:.6f}] s" if len(seq.imu) else "(no sample)"
+        raise DataError(f"sequence {seq.name!r}: the IMU {span} covers none of its {len(sampled)} clips "
+                        f"({IMU_MISSING})")
+    return covered
+
+
+def skipped_clips(seq: Sequence, *, options: EvalOptions, chained: bool = False) -> list[np.ndarray]:
+    """The sampled clips ``check_sequence`` leaves out (``IMU_MISSING``: no IMU sample at or before the first frame, or
+    at or after the last)."""
+    covered = {int(idx[0]) for idx in check_sequence(seq, options=options, chained=chained)}
+    return [idx for idx in clip_indices(len(seq.stamps), options=options, chained=chained)
+            if int(idx[0]) not in covered]
 
 
 def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEval],

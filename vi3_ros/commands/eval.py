@@ -366,8 +366,11 @@ def _prepare(args: argparse.Namespace) -> tuple:
                   file=sys.stderr)
         # Several inputs are reopened one at a time when evaluated (bags are read into memory whole); Ray workers
         # open their own.
+        skipped = runner.skipped_clips(seq, options=options, chained=_chained(args))
         runs.append(Evaluated(seq.name, path, seq=seq if keep else None, clips=sampled,
-                              obj={"input": path, "depth_gt": seq.depth_gt}))
+                              obj={"input": path, "depth_gt": seq.depth_gt, "skipped_clips": [
+                                  {"frames": [int(idx[0]), int(idx[-1])], "reason": runner.IMU_MISSING}
+                                  for idx in skipped]}))
     if problems:
         raise DataError("; ".join(problems))
     for item, name in zip(runs, unique_names([r.name for r in runs])):
