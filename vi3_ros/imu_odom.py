@@ -17,6 +17,7 @@ back (a newer epoch) the propagation is forgotten, and a state chained from a cl
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 from collections.abc import Callable
@@ -24,34 +25,48 @@ from typing import Any
 
 import numpy as np
 
-from msg_adapters.poses import odometry
+from msg_adapters.poses import OdometryMessages
 from msg_adapters.types import MessageTypes
 from vi3_core.init.options import InitOptions
 from vi3_core.online import OdomState, Trajectory
-from vi3_core.online.propagator import ImuPropagator, PropagatedStates, PropagationSigmas, propagation_sigmas
+from vi3_core.online.propagator import ImuPropagator, ImuState, PropagationSigmas, SigmaModel
 from vi3_core.types import ImuSamples
 from vi3_ros.flight_odom import Anchor, FlightOdometry
 from vi3_ros.settings import Settings
 
+_DIAGONAL = np.arange(6) * 7  # the diagonal of a [6,6] covariance in its row-major [36]
 
-def sigmas(tau: np.ndarray, state: OdomState, options: InitOptions) -> PropagationSigmas:
-    """The 1-sigmas of states propagated ``tau`` [m] s from ``state``'s last frame, from ``state``'s sigmas and
-    ``options``' IMU noise model."""
-    return propagation_sigmas(tau, v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
-                              gravity_norm=options.gravity_norm)
+
+def sigma_model(state: OdomState, options: InitOptions) -> SigmaModel:
+    """The 1-sigmas of states propagated from ``state``'s last frame (``SigmaModel.at(tau)``), from ``state``'s sigmas
+    and ``options``' IMU noise model."""
+    return SigmaModel.of(v_sigma=state.v_sigma, g_sigma=state.g_sigma, noise=options.noise_model,
+                         gravity_norm=options.gravity_norm)
+
+
+def gyro_variance(options: InitOptions, sample_dt: float) -> float:
+    """(rad/s)^2: the gyro's white noise over one sample interval ``sample_dt`` s."""
+    return options.gyro_noise_density**2 / max(sample_dt, 1e-6)
+
+
+def diagonals(s: PropagationSigmas, gyro_var) -> tuple[tuple, tuple]:
+    """The diagonals (6 entries each, floats or arrays) of the pose covariance in odom over (x, y, z, rot x, rot y,
+    rot z) and of the twist covariance in the body frame, of states with the 1-sigmas ``s`` (``SigmaModel.at``);
+    ``gyro_var``: ``gyro_variance``."""
+    h2, v2 = s.position_h**2, s.velocity**2
+    return (h2, h2, s.position_v**2, s.tilt**2, s.tilt**2, s.yaw**2), (v2, v2, v2, gyro_var, gyro_var, gyro_var)
 
 
 def covariances(s: PropagationSigmas, options: InitOptions, sample_dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """(pose covariance [m,6,6] in odom, twist covariance [m,6,6] in the body frame) of states with the 1-sigmas
-    ``s`` (``sigmas``); ``sample_dt`` s: the IMU sample interval (gyro noise of ``options``)."""
-    m = len(s.position_h)
-    pose = np.zeros((m, 6, 6))
-    idx = np.arange(6)
-    pose[:, idx, idx] = np.stack([s.position_h, s.position_h, s.position_v, s.tilt, s.tilt, s.yaw], -1) ** 2
-    twist = np.zeros((m, 6, 6))
-    gyro_var = options.gyro_noise_density**2 / max(sample_dt, 1e-6)
-    twist[:, idx, idx] = np.concatenate([np.repeat(s.velocity[:, None] ** 2, 3, 1), np.full((m, 3), gyro_var)], 1)
-    return pose, twist
+    """(pose covariance [m,6,6] in odom, twist covariance [m,6,6] in the body frame) of states with the 1-sigmas ``s``
+    at m taus; ``sample_dt`` s: the IMU sample interval (gyro noise of ``options``)."""
+    out = []
+    for diag in diagonals(s, gyro_variance(options, sample_dt)):
+        d = np.stack(np.broadcast_arrays(*diag), -1)
+        cov = np.zeros(d.shape + (6,))
+        cov[..., np.arange(6), np.arange(6)] = d
+        out.append(cov)
+    return out[0], out[1]
 
 
 #: rad; the yaw 1-sigma of ``~/odom``: yaw in odom is unobservable (the first clip's is arbitrary), so it is not known.
@@ -64,7 +79,7 @@ def start_covariances(state: OdomState, *, options: InitOptions, sample_dt: floa
     """``covariances`` [6,6] (pose, twist) of ``~/odom/imu`` at the chained ``state``'s last frame (tau = 0): roll and
     pitch the gravity direction's sigma, velocity v_sigma, angular rate the gyro's white noise per ``sample_dt`` s,
     position and yaw zero."""
-    pose, twist = covariances(sigmas(np.zeros(1), state, options), options, sample_dt)
+    pose, twist = covariances(sigma_model(state, options).at(np.zeros(1)), options, sample_dt)
     return pose[0], twist[0]
 
 
@@ -88,22 +103,24 @@ class ImuOdometry:
     """The IMU-rate odometry of one stream; thread-safe (``restart`` on the worker thread, ``add`` on the input
     thread). ``publish(key, msg, stamp_ns)`` is the Pipeline's; ``settings`` its settings. Lock order: ``restart``
     calls ``imu_since`` (which takes the Pipeline's lock) under this object's lock, so the Pipeline must not call
-    into this object while it holds its own."""
+    into this object while it holds its own. A sample costs about 30 us of CPU, its message included
+    (``vi3 bench pipeline``: ``imu_odom_us_per_sample``)."""
 
     def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None],
                  flight: FlightOdometry | None = None) -> None:
         self.period_ns = round(1e9 / settings.outputs.imu_odom_rate)
         self.max_sigma = float(settings.outputs.imu_odom_max_sigma)
-        self.frame, self.child = settings.frames.odom_frame, settings.frames.base_frame
+        self.messages = OdometryMessages(frame_id=settings.frames.odom_frame,
+                                         child_frame_id=settings.frames.base_frame, types=types)
         # dead reckoning is trusted for as long as the window bridges a gap between clips
         self.options, self.max_tau_s = settings.init, settings.online.online_max_bridge
 
-        self.types, self._publish, self.flight = types, publish, flight
+        self._publish, self.flight = publish, flight
         self._lock = threading.Lock()
         self._prop: ImuPropagator | None = None
-        self._caught_up: PropagatedStates | None = None  # the states ``restart`` caught up through
-        self._state: OdomState | None = None
-        self._anchor: Anchor | None = None  # the flight odometry's anchor of ``_state``
+        self._caught_up: list[ImuState] = []  # the states ``restart`` caught up through
+        self._sigmas: SigmaModel | None = None  # of the state propagated
+        self._anchor: Anchor | None = None  # the flight odometry's anchor of the state
         self._next_ns: int | None = None  # the next publication is due at the first sample at or after this stamp
         self._last_ns: int | None = None  # the previous sample's stamp
         self._epoch = 0  # the clip buffer's epoch of the samples and states taken
@@ -125,12 +142,13 @@ class ImuOdometry:
         taken together with the state, so that no sample pairs one clip's state with another's."""
         prop = ImuPropagator(state, gravity_norm=self.options.gravity_norm, max_gap_s=self.options.max_imu_gap,
                              max_tau_s=self.max_tau_s)
+        sigmas = sigma_model(state, self.options)
         with self._lock:
             if not self._take_epoch(epoch):
                 return
             imu = imu_since(prop.t_c)
-            self._caught_up = prop.advance(imu) if imu is not None else None
-            self._prop, self._state, self._anchor = prop, state, anchor
+            self._caught_up = prop.advance_states(imu) if imu is not None else []
+            self._prop, self._sigmas, self._anchor = prop, sigmas, anchor
 
     def add(self, stamp_ns: int, gyro, accel, epoch: int = 0) -> None:
         """One IMU sample (stamp in IMU time, ns; gyro [3] rad/s; accel [3] m/s^2) of buffer ``epoch``: propagate,
@@ -142,41 +160,37 @@ class ImuOdometry:
             if last is not None and stamp_ns <= last:
                 return
             self._last_ns = stamp_ns
-            prop, state, anchor = self._prop, self._state, self._anchor
+            prop, anchor = self._prop, self._anchor
             if prop is None or prop.stopped:
                 return
-            states = prop.advance(ImuSamples(np.array([stamp_ns * 1e-9]), np.reshape(gyro, (1, 3)),
-                                             np.reshape(accel, (1, 3))))
-            if not len(states):  # ``restart`` may have caught up through this sample already (it came in between)
-                states = _state_at(self._caught_up, stamp_ns)
-            if states is None or not len(states):
+            # ``restart`` may have caught up through this sample already (it came in between)
+            s = prop.step(stamp_ns * 1e-9, gyro, accel) or _state_at(self._caught_up, stamp_ns)
+            if s is None:
                 return
-            sig = sigmas(states.tau, state, self.options)
-            if self._too_uncertain(prop, sig, float(states.tau[-1])) or not self._due(stamp_ns, last):
+            sig = self._sigmas.at(s.tau)
+            if self._too_uncertain(prop, sig.position_h, s.tau) or not self._due(stamp_ns, last):
                 return
         dt = (stamp_ns - last) * 1e-9 if last is not None else 1e-9 * self.period_ns
-        pose_cov, twist_cov = covariances(sig, self.options, dt)
-        T, v_O, omega = states.T_OB[0], states.v_O[0], states.omega[0]
-        msg = odometry(T, T[:3, :3].T @ v_O, omega, stamp_ns=stamp_ns, frame_id=self.frame, child_frame_id=self.child,
-                       types=self.types, pose_cov=pose_cov[0], twist_cov=twist_cov[0])
-        self._publish("odom_imu", msg, stamp_ns)
+        pose_cov, twist_cov = np.zeros(36), np.zeros(36)
+        pose_diag, twist_diag = diagonals(sig, gyro_variance(self.options, dt))
+        pose_cov[_DIAGONAL], twist_cov[_DIAGONAL] = pose_diag, twist_diag
+        self._publish("odom_imu", self.messages.make(stamp_ns, s.p, s.q, s.v_body, s.omega, pose_cov, twist_cov),
+                      stamp_ns)
         self.published += 1
         if self.flight is not None and anchor is not None:
-            self.flight.propagated(anchor, stamp_ns, T, v_O, omega, pose_cov[0], twist_cov[0])
+            self.flight.propagated(anchor, stamp_ns, s.T_OB, np.array(s.v), np.array(s.omega),
+                                   pose_cov.reshape(6, 6), twist_cov.reshape(6, 6))
 
     def _take_epoch(self, epoch: int) -> bool:
         """Move to ``epoch`` when it is newer (time went back: everything is forgotten); False when it is older."""
         if epoch > self._epoch:
-            self._epoch, self._prop, self._state, self._next_ns, self._last_ns = epoch, None, None, None, None
+            self._epoch, self._prop, self._next_ns, self._last_ns = epoch, None, None, None
         return epoch == self._epoch
 
-    def _too_uncertain(self, prop: ImuPropagator, sig: PropagationSigmas, tau: float) -> bool:
-        """Whether the newest state's horizontal position 1-sigma (``sig``, ``tau`` s after the chained frame) exceeds
-        ``imu_odom_max_sigma``; then the propagation stops, saying so."""
-        if self.max_sigma <= 0:
-            return False
-        sigma = float(sig.position_h[-1])
-        if sigma <= self.max_sigma:
+    def _too_uncertain(self, prop: ImuPropagator, sigma: float, tau: float) -> bool:
+        """Whether the newest state's horizontal position 1-sigma (``sigma`` m, ``tau`` s after the chained frame)
+        exceeds ``imu_odom_max_sigma``; then the propagation stops, saying so."""
+        if self.max_sigma <= 0 or sigma <= self.max_sigma:
             return False
         prop.stopped = (f"position 1-sigma {sigma:.2f} m > imu_odom_max_sigma {self.max_sigma:g} m, {tau:.1f} s after "
                         "the last chained frame")
@@ -193,12 +207,9 @@ class ImuOdometry:
         return True
 
 
-def _state_at(states: PropagatedStates | None, stamp_ns: int) -> PropagatedStates | None:
-    """The state of ``states`` at the sample stamped ``stamp_ns`` (ns; within a microsecond), or None."""
-    if states is None or not len(states):
-        return None
-    k = int(np.argmin(np.abs(states.t - stamp_ns * 1e-9)))
-    if abs(states.t[k] - stamp_ns * 1e-9) > 1e-6:
-        return None
-    return PropagatedStates(*(np.asarray(a)[k:k + 1] for a in (states.t, states.T_OB, states.v_O, states.omega,
-                                                                states.tau)))
+def _state_at(states: list[ImuState], stamp_ns: int) -> ImuState | None:
+    """The state of ``states`` (in time order) at the sample stamped ``stamp_ns`` (ns; within a microsecond), or
+    None."""
+    t = stamp_ns * 1e-9
+    k = bisect.bisect_left(states, t - 1e-6, key=lambda s: s.t)
+    return states[k] if k < len(states) and abs(states[k].t - t) <= 1e-6 else None

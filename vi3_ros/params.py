@@ -215,8 +215,9 @@ PARAMS: tuple[Param, ...] = (
     Param("backbone", ModelOptions, "3D foundation model", choices=tuple(BACKBONES)),
     Param("device", ModelOptions, "torch device of the backbone (cpu, cuda, cuda:1...)"),
     Param("checkpoint", ModelOptions, "local checkpoint path or Hugging Face id; empty: the backbone's default"),
-    Param("threads", ModelOptions, "torch intra-op threads of the process (backbone forward, cond/ttr steps) and the "
-          "classical backbone's plane-sweep threads, set once at start; 0: min(2, CPUs this process may use)",
+    Param("threads", ModelOptions, "torch intra-op threads and OpenCV threads of the process (backbone forward, "
+          "cond/ttr steps, the classical backbone's tracking) and the classical backbone's plane-sweep threads, set "
+          "once at start; 0: min(2, CPUs this process may use)",
           range=(0, 1024)),
     Param("mode", StreamOptions, "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
           "(test-time refinement)", choices=MODES),

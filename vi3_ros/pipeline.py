@@ -52,11 +52,12 @@ from msg_adapters.diagnostics import DiagStatus, Level, diagnostic_array
 from msg_adapters.poses import tf_message_to_list
 from msg_adapters.types import MessageTypes
 from vi3_core.backbones import make_backbone
+from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.calib import load_calib
 from vi3_core.errors import CalibrationError, DataError
 from vi3_core.online import OnlineDecision, StreamEstimator
 from vi3_core.online.calibration import RigEstimate
-from vi3_core.threads import use_torch_threads
+from vi3_core.threads import use_threads
 from vi3_core.types import AnchorResult, Clip, InitResult
 from vi3_ros.calibration import Calibration, FrameMisfit, frame_problem, make_clip
 from vi3_ros.clip_buffer import ClipBuffer, ClipBufferOptions, Drop, RawClip, Rewind
@@ -116,7 +117,8 @@ class Pipeline:
                  types: MessageTypes, synchronous: bool = False,
                  on_report: Callable[[ClipReport], None] | None = None, clock: Callable[[], int] | None = None) -> None:
         self.settings = settings
-        self.stream = StreamEstimator(backbone, options=settings.stream, online=settings.online, init=settings.init,
+        stream = dataclasses.replace(settings.stream, all_depth=settings.outputs.all_depth)
+        self.stream = StreamEstimator(backbone, options=stream, online=settings.online, init=settings.init,
                                       anchor=settings.anchor, calibration=settings.calibration)
         self.calibration = calibration
         self.sink = sink
@@ -143,7 +145,7 @@ class Pipeline:
         self.outcomes: collections.Counter[str] = collections.Counter()
         self.message_drops: collections.Counter[str] = collections.Counter()  # drops before the buffer, by reason
         self.closing = False  # set by close(): outputs of a clip still running are not published
-        self.threads = use_torch_threads(settings.model.threads)
+        self.threads = use_threads(settings.model.threads)
         self.worker = Worker(self._process, on_error=self._on_error, on_replaced=self._on_replaced,
                              synchronous=synchronous)
 
@@ -378,11 +380,13 @@ class Pipeline:
 
 def make_pipeline(settings: Settings, *, sink: OutputSink, types: MessageTypes, synchronous: bool = False,
                   on_report: Callable[[ClipReport], None] | None = None,
-                  clock: Callable[[], int] | None = None) -> Pipeline:
-    """The pipeline of ``settings``: backbone from ``backbone``/``device``/``checkpoint``, calibration file from
-    ``calib_file`` (empty: calibration must arrive as CameraInfo and /tf_static); ``clock``: see ``Pipeline``."""
+                  clock: Callable[[], int] | None = None, backbone: Backbone | None = None) -> Pipeline:
+    """The pipeline of ``settings``: backbone from ``backbone``/``device``/``checkpoint`` (or the ``backbone`` given:
+    ``vi3 bench pipeline``'s recorded one), calibration file from ``calib_file`` (empty: calibration must arrive as
+    CameraInfo and /tf_static); ``clock``: see ``Pipeline``."""
     model, inputs = settings.model, settings.inputs
-    backbone = make_backbone(model.backbone, device=model.device, checkpoint=model.checkpoint or None)
+    if backbone is None:
+        backbone = make_backbone(model.backbone, device=model.device, checkpoint=model.checkpoint or None)
     calibration = Calibration(load_calib(inputs.calib_file) if inputs.calib_file else None)
     return Pipeline(settings, backbone=backbone, calibration=calibration, sink=sink, types=types,
                     synchronous=synchronous, on_report=on_report, clock=clock)

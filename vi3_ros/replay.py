@@ -45,6 +45,7 @@ from msg_adapters.image import numpy_to_image
 from msg_adapters.imu import samples_to_imus
 from msg_adapters.types import MessageTypes, jazzy_types
 from vi3_core.anchor.options import MODES
+from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.asl import find_mav0
 from vi3_core.dataset.calib import CameraCalib, load_calib
 from vi3_core.errors import CalibrationError, DataError, Vi3Error
@@ -472,9 +473,10 @@ def _events(input_path: Path, settings: Settings, image_topic: str | None, imu_t
 def replay(input_path: str | Path, output: str | Path, *, settings: Settings, copy_inputs: bool = False,
            progress: bool = True, force: bool = False, image_topic: str | None = None,
            imu_topic: str | None = None, realtime: bool = False,
-           on_note: Callable[[str], None] | None = None) -> ReplaySummary:
+           on_note: Callable[[str], None] | None = None, backbone: Backbone | None = None) -> ReplaySummary:
     """Replay ``input_path`` through the pipeline configured by ``settings``; write outputs to ``output``;
-    ``realtime``: at the recorded rate into the node's worker thread (see the module docstring).
+    ``realtime``: at the recorded rate into the node's worker thread (see the module docstring); ``backbone``: the
+    one to run instead of the settings' (``vi3 bench pipeline``).
 
     The calibration and time offset: ``input_settings`` (``on_note``: its notes). Topics: ``topic_requests``. The
     output is written beside ``output`` and moved there only when the replay finishes and some clip produced a
@@ -499,7 +501,7 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
         try:
             interrupts.release()  # a signal that came meanwhile interrupts here
             pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,
-                                     on_report=lambda r: _record_report(summary, r))
+                                     on_report=lambda r: _record_report(summary, r), backbone=backbone)
             start = time.perf_counter()  # model loading is not part of the replay's speed
             _run(pipeline, sink, _events(input_path, settings, image_topic, imu_topic), summary, settings,
                  copy_inputs=copy_inputs, progress=progress, name=input_path.name)

@@ -28,12 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from vi3_core.dataset.asl import find_mav0, read_groundtruth
+from msg_adapters.types import jazzy_types
+from vi3_core.backbones import make_backbone
+from vi3_core.backbones.recorded import RecordedBackbone, Recording, RecordingBackbone
+from vi3_core.dataset.asl import find_mav0, read_groundtruth, read_imu
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, bench_cache_dir, cached_sequence, generation_tag
 from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.errors import DataError
+from vi3_core.online import OdomState
 from vi3_core.threads import torch_thread_settings
+from vi3_ros.imu_odom import ImuOdometry
 from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.ros1 import write_ros1_bag
 from vi3_ros.params import parse_assignment, resolve
@@ -69,9 +74,9 @@ def ground_truth(inp: Path) -> GroundTruthTrack | None:
     return None
 
 
-def bench_replay(args: argparse.Namespace) -> dict:
-    """Replay the input ``args.repeats`` times (default 1); median realtime factor and per-clip latency, and the
-    odometry of the median run against ground truth where there is one."""
+def _bench_input(args: argparse.Namespace):
+    """(input, ASL folder, settings) of a replay benchmark: ``--input`` or the generated bench sequence, init mode,
+    ``--backbone``, ``--device``, ``--backbone-delay`` and every ``--param``."""
     if args.input:
         inp, calib, asl = Path(args.input), None, Path(args.input)
     else:
@@ -80,7 +85,13 @@ def bench_replay(args: argparse.Namespace) -> dict:
                  **({"calib_file": str(calib)} if calib is not None else {}), **dict(map(parse_assignment, args.param))}
     if args.backbone_delay is not None:
         overrides["backbone_delay"] = args.backbone_delay
-    settings = resolve(overrides)
+    return inp, asl, resolve(overrides)
+
+
+def bench_replay(args: argparse.Namespace) -> dict:
+    """Replay the input ``args.repeats`` times (default 1); median realtime factor and per-clip latency, and the
+    odometry of the median run against ground truth where there is one."""
+    inp, asl, settings = _bench_input(args)
     runs, cpu, odometry = [], [], []
     with tempfile.TemporaryDirectory(prefix="vi3-bench-replay-") as tmp:
         for i in range(args.repeats or 1):
@@ -104,3 +115,48 @@ def bench_replay(args: argparse.Namespace) -> dict:
             "imu_odom_rate": settings.outputs.imu_odom_rate, "input": str(inp),
             "peak_rss_mb": round(peak_rss_mb, 1), **torch_thread_settings(),
             **(odometry[median] if len(odometry) == len(runs) else {})}
+
+
+def bench_pipeline(args: argparse.Namespace) -> dict:
+    """What the replay costs beside its backbone: the input replayed once with the backbone (``--backbone``) while
+    its base prediction of every clip is recorded, then ``args.repeats`` times (default 3) with those predictions
+    served from the recording (``vi3_core.backbones.recorded``): reading, clip assembly and undistortion, the
+    initialisation, the window and its links, self-calibration, the outputs, ``~/odom/imu`` and writing, every clip
+    as the node runs it. ``cpu_s_per_clip``: process CPU seconds per clip of those replays (median);
+    ``imu_odom_us_per_sample``: CPU microseconds of ``ImuOdometry.add`` per IMU sample of the input, its message
+    built (rosbags classes, as replay writes them) and handed to a sink that keeps nothing (median of
+    ``args.repeats`` passes)."""
+    inp, asl, settings = _bench_input(args)
+    recording = Recording()
+    inner = make_backbone(settings.model.backbone, device=settings.model.device,
+                          checkpoint=settings.model.checkpoint or None)
+    cpu, runs = [], []
+    with tempfile.TemporaryDirectory(prefix="vi3-bench-pipeline-") as tmp:
+        replay(inp, Path(tmp) / "recorded.mcap", settings=settings, progress=False,
+               backbone=RecordingBackbone(inner, recording))
+        for i in range(args.repeats or 3):
+            c0 = time.process_time()
+            runs.append(replay(inp, Path(tmp) / f"out{i}.mcap", settings=settings, progress=False,
+                               backbone=RecordedBackbone(recording, name=f"recorded {inner.name}")))
+            cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
+    median = runs[int(np.argsort(cpu)[len(cpu) // 2])]
+    imu_us = [_imu_odom_cost(settings, asl) for _ in range(args.repeats or 3)]
+    return {"cpu_s_per_clip": round(float(np.median(cpu)), 4), "clips": median.clips,
+            "recorded_clips": len(recording), "wall_s": round(median.wall_s, 3), "bag_s": round(median.bag_s, 3),
+            "outcomes": dict(median.outcomes), "imu_odom_us_per_sample": round(float(np.median(imu_us)), 1),
+            "backbone": inner.name, "input": str(inp), **torch_thread_settings()}
+
+
+def _imu_odom_cost(settings, asl: Path) -> float:
+    """CPU microseconds per sample of ``ImuOdometry.add`` over the IMU of ``asl`` (its first sample the chained
+    state's, at rest: the work per sample does not depend on the motion)."""
+    _, imu = read_imu(find_mav0(asl))
+    first = np.array([imu.t[0]])
+    state = OdomState(first, np.eye(4)[None], np.zeros((1, 3)), np.zeros(3), np.zeros(3), 0.01, 0.001)
+    odom = ImuOdometry(settings.replace(imu_odom_max_sigma=0.0), types=jazzy_types(), publish=lambda *_: None)
+    odom.restart(state, lambda t: imu.select(slice(0, 1)))
+    ns, gyro, accel = imu.t_ns.tolist(), imu.gyro, imu.accel
+    c0 = time.process_time()
+    for i in range(1, len(ns)):
+        odom.add(ns[i], gyro[i], accel[i])
+    return (time.process_time() - c0) / max(len(ns) - 1, 1) * 1e6

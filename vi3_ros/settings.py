@@ -60,6 +60,11 @@ class OutputOptions:
     points_max_depth: float = 20.0
     diagnostics_period: float = 1.0
 
+    @property
+    def all_depth(self) -> bool:
+        """Whether every frame's depth is published (``depth_frames`` or ``points_frames`` all)."""
+        return self.depth_frames == "all" or self.points_frames == "all"
+
 
 #: A ROS 2 topic name: absolute or relative tokens of letters, digits and underscores, not starting with a digit.
 _TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")

@@ -142,8 +142,7 @@ def exact_plane() -> tuple[tuple, float, int]:
     frames = [ref] + [cv2.warpPerspective(ref, K @ (np.eye(3) - np.outer(t, [0, 0, 1]) / depth) @ np.linalg.inv(K),
                                           (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
                       for t in t_wc[1:]]
-    args = (torch.as_tensor(np.stack(frames))[:, None], torch.as_tensor(K, dtype=torch.float32),
-            torch.eye(3).expand(4, 3, 3), torch.as_tensor(t_wc, dtype=torch.float32), torch.tensor([[1.0, 4.0]] * 4))
+    args = (np.stack(frames), K, np.tile(np.eye(3), (4, 1, 1)), t_wc, np.array([[1.0, 4.0]] * 4))
     return args, depth, w
 
 
@@ -152,8 +151,11 @@ def test_plane_sweep_recovers_an_exact_plane(exact_plane):
     args, depth, w = exact_plane
     d, conf = plane_sweep(*args, n_depths=32, n_sources=3, best_k=2, window=5)
     inner = (slice(10, -10), slice(w // 4 + 10, -10))
-    assert np.median(np.abs(d[0][inner].numpy() / depth - 1)) < 0.005
+    assert np.median(np.abs(d[0][inner] / depth - 1)) < 0.005
     assert float(conf[0][inner].mean()) > 3 * float(conf[0][:, 4: w // 4 - 4].mean())
+    # Swept as the only reference frame asked for, frame 0 comes out the same.
+    d0, conf0 = plane_sweep(*args, frames=[0], n_depths=32, n_sources=3, best_k=2, window=5)
+    assert d0.shape == (1, *d.shape[1:]) and np.array_equal(d0[0], d[0]) and np.array_equal(conf0[0], conf[0])
 
 
 @pytest.mark.slow
@@ -164,7 +166,7 @@ def test_plane_sweep_result_does_not_depend_on_its_threads(exact_plane):
     for best_k in (2, 3):
         one = plane_sweep(*args, n_depths=20, n_sources=3, best_k=best_k, window=5, workers=1)
         three = plane_sweep(*args, n_depths=20, n_sources=3, best_k=best_k, window=5, workers=3)
-        assert torch.equal(one[0], three[0]) and torch.equal(one[1], three[1])
+        assert np.array_equal(one[0], three[0]) and np.array_equal(one[1], three[1])
 
 
 @pytest.mark.slow
@@ -299,3 +301,21 @@ def test_real_euroc_frames(euroc_fixture):
     assert backbone.last_inputs.diagnostics["reproj_px_median"] < 0.5
     h = geom.depth.shape[1]
     assert np.median(geom.depth[:, 2 * h // 3:]) < 0.5 * np.median(geom.depth[:, : h // 3])
+
+
+@pytest.mark.slow
+def test_only_the_frames_whose_depth_is_read_are_swept(room):
+    """Bound with ``depth_frames`` (the stream's: the shared first and last frames) the backbone sweeps those only:
+    the others have no depth and no confidence, the swept frames the depth of a full sweep up to the scale
+    normalisation (one factor for the clip), poses up to the same factor; the binding is for one prediction only."""
+    clip = make_clip(room, np.arange(20, 36, 2))
+    backbone = make_backbone("classical")
+    full = backbone.predict(clip.images, clip.K)
+    backbone.bind(clip, depth_frames=np.array([0, 7]))
+    ends = backbone.predict(clip.images, clip.K)
+    assert np.isnan(ends.depth[1:7]).all() and not ends.conf[1:7].any()
+    ratio = ends.depth[[0, 7]] / full.depth[[0, 7]]
+    assert np.nanstd(ratio) < 1e-5 * np.nanmean(ratio)
+    np.testing.assert_allclose(ends.T_wc[:, :3, 3] / np.nanmean(ratio), full.T_wc[:, :3, 3], atol=1e-6)
+    np.testing.assert_allclose(ends.conf[[0, 7]], full.conf[[0, 7]], atol=1e-6)
+    assert np.isfinite(backbone.predict(clip.images, clip.K).depth).all()  # not bound again: every frame

@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from euroc_cuts import quarter_copy
 
+from vi3_core.backbones import make_backbone
 from vi3_core.backbones.ground_truth import GroundTruthPoses
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.eval.coverage import motion_start
-from vi3_core.online import OnlineOptions, StreamEstimator
+from vi3_core.online import OnlineOptions, StreamEstimator, StreamOptions
 from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.sim.visual import DepthNoise, PoseNoise
 
@@ -96,3 +97,17 @@ def test_without_shared_frames_the_window_is_todays(takeoff):
                     calibration=CalibrationOptions(self_calibration=False))
     assert all(o.decision.link is None and not o.decision.link_note for o, _ in outcomes)
     assert all(np.array_equal(o.clip.stamps, takeoff.stamps[idx]) for (o, _), idx in zip(outcomes, clips))
+
+
+def test_the_frames_whose_depth_is_read():
+    """init mode: the last frame (published) and the shared frames at both ends (the scale links); every frame when
+    the outputs publish every frame's depth, in cond / ttr mode (the refinement reads them all), and without online
+    only the last."""
+    instrument = GroundTruthPoses()
+    stream = StreamEstimator(instrument, online=OnlineOptions(shared_frames=2))
+    assert stream.depth_frames(8).tolist() == [0, 1, 6, 7]
+    assert StreamEstimator(instrument).depth_frames(8).tolist() == [0, 7]
+    assert StreamEstimator(instrument, options=StreamOptions(online=False)).depth_frames(8).tolist() == [7]
+    assert StreamEstimator(instrument, options=StreamOptions(all_depth=True)).depth_frames(8) is None
+    assert StreamEstimator(instrument, online=OnlineOptions(shared_frames=0)).depth_frames(8).tolist() == [7]
+    assert StreamEstimator(make_backbone("classical"), options=StreamOptions(mode="ttr")).depth_frames(8) is None

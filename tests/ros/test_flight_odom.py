@@ -27,7 +27,7 @@ from vi3_ros.flight_odom import (
     px4_odometry,
     scale_quality,
 )
-from vi3_ros.imu_odom import covariances, sigmas, start_covariances
+from vi3_ros.imu_odom import covariances, sigma_model, start_covariances
 from vi3_ros.params import load_yaml, resolve
 
 TYPES = jazzy_types()
@@ -126,7 +126,7 @@ def test_the_growth_since_the_chained_clip_is_added_to_its_variances():
     def at(tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         states = PropagatedStates(np.array([tau]), np.eye(4)[None], np.zeros((1, 3)), np.zeros((1, 3)),
                                   np.array([tau]))
-        pose, twist = (c[0] for c in covariances(sigmas(states.tau, state, options), options, 0.005))
+        pose, twist = (c[0] for c in covariances(sigma_model(state, options).at(states.tau), options, 0.005))
         return (*anchor.propagated(pose, twist), np.diag(pose), np.diag(twist))
 
     pose0, twist0, _, _ = at(0.0)

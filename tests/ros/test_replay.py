@@ -31,6 +31,8 @@ from msg_adapters.pointcloud import point_cloud2_to_numpy
 from msg_adapters.poses import poses_to_T, tf_message, transform_stamped
 from msg_adapters.stamps import ns_to_stamp, stamp_to_ns
 from msg_adapters.types import jazzy_types
+from vi3_core.backbones import make_backbone
+from vi3_core.backbones.recorded import RecordedBackbone, Recording, RecordingBackbone
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence, generation_tag
@@ -40,7 +42,7 @@ from vi3_ros.io.convert import convert_to_rosbag2
 from vi3_ros.io.ros1 import ros1_types, write_ros1_bag
 from vi3_ros.params import resolve
 from vi3_ros.replay import replay
-from vi3_ros.replay_bench import bench_replay
+from vi3_ros.replay_bench import bench_pipeline, bench_replay
 
 pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
 
@@ -535,3 +537,31 @@ def test_bench_replay_reports_speed_and_cpu_seconds_per_clip(bag3):
     assert out["clips"] >= 2 and sum(out["outcomes"].values()) == out["clips"]
     assert out["realtime_factor"] > 0 and out["median_latency_ms"] > 0
     assert 0 < out["cpu_s_per_clip"] < 60
+
+
+def test_a_recorded_backbone_replays_what_the_backbone_gave_and_bench_pipeline_costs_the_rest(bag4, tmp_path):
+    """``vi3 bench pipeline``'s instrument: a replay through the recorded predictions publishes what the replay
+    through the backbone published (every ~/status value but the timings and latencies, every pose), and a clip
+    the recording never saw is a clear error; the bench reports the CPU per clip of everything else and of
+    ``~/odom/imu`` per sample."""
+    asl, mcap = bag4
+    settings = resolve({"calib_file": str(_calib_file(tmp_path)), **OPEN_GATE})
+    recording = Recording()
+    live = replay(mcap, tmp_path / "live.mcap", settings=settings, progress=False,
+                  backbone=RecordingBackbone(make_backbone("classical"), recording))
+    served = replay(mcap, tmp_path / "served.mcap", settings=settings, progress=False,
+                    backbone=RecordedBackbone(recording))
+    assert len(recording) == live.clips == served.clips >= 4
+    a, b = _read(live.output), _read(served.output)
+    keep = lambda s: {k: v for k, v in s.values.items() if not k.startswith(("timing_", "latency"))}
+    assert [keep(s) for s in _statuses(a)] == [keep(s) for s in _statuses(b)]
+    assert [poses_to_T(m.poses).tolist() for m in a["/vi3_node/poses"]] == \
+        [poses_to_T(m.poses).tolist() for m in b["/vi3_node/poses"]]
+    empty = replay(mcap, tmp_path / "empty.mcap", settings=settings, progress=False,
+                   backbone=RecordedBackbone(Recording()))
+    assert empty.outcomes == {"skipped:error": empty.clips}, empty.outcomes
+
+    out = bench_pipeline(argparse.Namespace(input=str(asl), backbone="classical", device="cpu", repeats=1,
+                                            backbone_delay=None, param=[]))
+    assert out["clips"] == out["recorded_clips"] >= 4 and sum(out["outcomes"].values()) == out["clips"]
+    assert 0 < out["cpu_s_per_clip"] < 5 and 0 < out["imu_odom_us_per_sample"] < 10_000

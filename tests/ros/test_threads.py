@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 
+import cv2
 import pytest
 import torch
 
@@ -58,3 +59,4 @@ def test_the_pipeline_sets_torch_threads_for_its_worker_thread(threads, tmp_path
     finally:
         torch.set_num_threads(before)
     assert pipeline.threads == want and seen == [want]
+    assert cv2.getNumThreads() == want  # OpenCV's pool (tracking, the plane sweep) too

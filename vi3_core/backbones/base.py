@@ -123,10 +123,13 @@ class Backbone(abc.ABC):
         """The torch modules holding all parameters (put in eval mode; frozen except TTR groups)."""
         return []
 
-    def bind(self, clip) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None) -> None:
         """Called with each ``vi3_core.types.Clip`` just before it is predicted (``StreamEstimator``, with the
-        configured calibration): nothing for a model, which sees only its images; the evaluation's ground-truth
-        instrument predicts from the clip's ground truth."""
+        configured calibration), for that prediction only. ``depth_frames``: the indices of the frames whose depth the
+        caller reads (None: every frame); a backbone whose depth costs per frame may predict only those, the others
+        NaN with zero confidence. Nothing for a model, which sees only its images and predicts every frame's depth in
+        one pass; the evaluation's ground-truth instrument predicts from the clip's ground truth, and the
+        ``classical`` backbone carries each frame's tracking into the next clip that holds it (its stamps say)."""
         return
 
     def diagnostics(self) -> dict:

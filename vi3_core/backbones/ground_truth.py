@@ -40,9 +40,9 @@ class GroundTruthPoses(Backbone):
         self._clip: Clip | None = None
         self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
-    def bind(self, clip: Clip) -> None:
+    def bind(self, clip: Clip, *, depth_frames: np.ndarray | None = None) -> None:
         """The clip whose ground truth the next prediction uses (the stream binds each clip as it processes it, with
-        the configured calibration)."""
+        the configured calibration); its depth is that of every frame whatever ``depth_frames`` says."""
         if clip.gt is None:
             raise DataError(f"the gt instrument needs ground truth for the clip at {clip.stamps[0]:.6f} s")
         self._clip = clip

@@ -57,7 +57,9 @@ class EvalOptions:
     clips: "paper" (start / middle / end) or "sliding" (every ``hop`` frames); clip_length, stride, hop: frames per
         clip, frame stride and frames between sliding clips (None: back to back), as the node's parameters of the same
         names; max_clips: keep at most this many clips (evenly spread), None for all.
-    anchor_options, init_options, online_options, calibration_options: the stream's settings (None: the defaults).
+    anchor_options, init_options, online_options, calibration_options: the stream's settings (None: the defaults);
+    all_depth: every frame's depth predicted (``StreamOptions.all_depth``; the depth metrics then cover every frame),
+        else the frames the stream reads.
     """
 
     mode: str = "init"
@@ -71,6 +73,7 @@ class EvalOptions:
     init_options: InitOptions | None = None
     online_options: OnlineOptions | None = None
     calibration_options: CalibrationOptions | None = None
+    all_depth: bool = False
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -82,7 +85,8 @@ class EvalOptions:
     def stream(self, backbone: Backbone, *, online: bool) -> StreamEstimator:
         """The stream estimator these options describe (``online``: chained, else every clip on its own)."""
         return StreamEstimator(backbone, options=StreamOptions(online=online, mode=self.mode,
-                                                               init_source=self.init_source),
+                                                               init_source=self.init_source,
+                                                               all_depth=self.all_depth),
                                online=self.online_options, init=self.init_options, anchor=self.anchor_options,
                                calibration=self.calibration_options)
 

@@ -36,11 +36,15 @@ INIT_SOURCES = ("vi3", "gt")
 class StreamOptions:
     """online: carry the metric state across clips (the online window and the odom chaining); false: every clip on
     its own (the paper). mode: the anchoring mode (init | cond | ttr). init_source: "vi3", the GT-free
-    initialisation, or "gt", the oracle from the clip's ground truth (evaluation only: every clip on its own)."""
+    initialisation, or "gt", the oracle from the clip's ground truth (evaluation only: every clip on its own).
+    all_depth: every frame's depth is read downstream (the node publishes every frame's depth or points); else only
+    the frames the stream itself reads get depth from a backbone that predicts depth frame by frame
+    (``StreamEstimator.depth_frames``)."""
 
     online: bool = True
     mode: str = "init"
     init_source: str = "vi3"
+    all_depth: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -163,7 +167,7 @@ class StreamEstimator:
                                calibration=rig)
         if before_backbone is not None and not before_backbone():
             return None
-        self.backbone.bind(configured)
+        self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n))
         fast: list[AnchorResult] = []
 
         def take_fast(result: AnchorResult) -> None:
@@ -186,6 +190,16 @@ class StreamEstimator:
         return ClipOutcome(clip, result.init, result, fast[0] if fast else None,
                            window.last if window is not None else None, chained, self._state(), self._segment(),
                            rig, note)
+
+    def depth_frames(self, n: int) -> np.ndarray | None:
+        """The frames of an n-frame clip whose depth is read (None: every frame): in ``init`` mode the last (what the
+        node publishes, ``depth_frames`` / ``points_frames`` last) and, online, the first and last ``shared_frames``
+        (the scale links to the clips before and after); every frame with ``all_depth`` or in cond / ttr mode (the
+        refinement's losses use every frame's depth)."""
+        if self.options.all_depth or self.options.mode != "init":
+            return None
+        k = self.online_options.shared_frames if self.window is not None else 0
+        return np.unique(np.concatenate([np.arange(min(k, n)), np.arange(max(n - max(k, 1), 0), n)]))
 
     def _compose(self, clip: Clip) -> Clip:
         """``clip``, or with the window's shared frames in place of its first ones when it does not start with them

@@ -14,6 +14,7 @@ BENCHES: dict[str, str] = {
     "backbone": "vi3_core.backbones.bench:bench_backbone",
     "ttr": "vi3_core.anchor.bench:bench_ttr",
     "replay": "vi3_ros.replay_bench:bench_replay",
+    "pipeline": "vi3_ros.replay_bench:bench_pipeline",
 }
 
 
@@ -39,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="backbone/ttr benchmarks: a 3DFM's input resolution option (width for vggt, side of the pixel "
                    "budget for vggt_omega, pixels for pi3/pi3x, longest side for da3; docs/backbones.md); default "
                    "the adapter's")
-    p.add_argument("--input", default=None, help="input sequence for the replay benchmark")
+    p.add_argument("--input", default=None, help="input sequence for the replay and pipeline benchmarks")
     p.add_argument("--seconds", type=float, default=None, help="length of the generated replay input (default 20)")
     p.add_argument("--realtime", action="store_true", help="replay benchmark: at the recorded rate into the node's "
                    "worker thread (vi3 replay --realtime)")
@@ -65,9 +66,9 @@ def run(args: argparse.Namespace) -> int:
     option its backbone does not take) prints ``{"bench", "error"}`` and the exit status is 2."""
     from vi3_core.errors import Vi3Error
     from vi3_core.eval.report import to_json  # strict JSON: a NaN timing or ratio prints as null
-    from vi3_core.threads import use_torch_threads
+    from vi3_core.threads import use_threads
 
-    use_torch_threads(args.threads)
+    use_threads(args.threads)
     args.param = [f"threads={args.threads}", *args.param]  # the replay's pipeline sets it again from its parameters
 
     names = list(BENCHES) if args.name == "all" else [args.name]

@@ -1,9 +1,10 @@
 """The embedded ``classical`` backbone: up-to-scale multi-view geometry from classical vision, CPU, no weights.
 
-``preprocess`` does the non-differentiable work once per clip: feature tracks (``tracks``), structure from
-motion into one consistent up-to-scale frame (``poses``, ``bundle``) and plane-sweep stereo at the working
-resolution (``mvs``). ``forward`` then applies explicit trainable corrections, zero at the start, so that the base
-forward is exactly the classical result and test-time refinement can move poses and depth:
+``preprocess`` does the non-differentiable work once per clip: feature tracks (``tracks``), structure from motion
+into one consistent up-to-scale frame (``poses``, ``bundle``) and plane-sweep stereo at the working resolution
+(``mvs``) of the frames whose depth is read (``bind``'s ``depth_frames``; the others NaN with zero confidence).
+``forward`` then applies explicit trainable corrections, zero at the start, so that the base forward is exactly the
+classical result and test-time refinement can move poses and depth:
 
 - camera_head: per-frame rotation-vector and translation offsets of frames 1..n-1 (frame 0 stays the world);
   R_wc = exp(dw) R_wc_base, t_wc = t_wc_base + dt;
@@ -11,7 +12,7 @@ forward is exactly the classical result and test-time refinement can move poses 
 - global_blocks: none.
 
 Scale is normalised the way VGGT normalises its training targets: the confidence-weighted mean distance of the
-dense points of all frames from the first camera centre is 1 (``metric`` is False).
+dense points of the frames with depth from the first camera centre is 1 (``metric`` is False).
 
 Frames whose long side exceeds ``max_side`` (1024 px) are first shrunk to it (area averaging): the tracker's
 windows, corner spacing and pyramid are sized for frames of EuRoC's size (752x480), and at 4512x2880 its tracks
@@ -39,8 +40,7 @@ from vi3_core.backbones._hub import check_clip, resize_crop, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
-from vi3_core.backbones.classical.tracks import track_features
-from vi3_core.camera_torch import pixel_rays
+from vi3_core.backbones.classical.tracks import TrackerOptions, track_features
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
 
@@ -139,8 +139,14 @@ class ClassicalBackbone(Backbone):
         self.threads = threads
         self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window)
         self.bundle_adjust = bundle_adjust
+        self.tracker_options = TrackerOptions(max_features=max_features)
         #: The last clip's inputs (status, reason, diagnostics); its corrections are what ``param_groups`` returns.
         self.last_inputs: ClassicalInputs | None = None
+        self._depth_frames: np.ndarray | None = None  # of the clip bound, for its ``preprocess``
+
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None) -> None:
+        """The frames whose depth is read (the plane sweep runs for those only), for the next ``preprocess`` only."""
+        self._depth_frames = depth_frames
 
     @property
     def last_status(self) -> str:
@@ -169,54 +175,56 @@ class ClassicalBackbone(Backbone):
         """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``:
         images [n,3,h,w] and K [n,3,3] at the working resolution (``_hub.resize_crop``)."""
         workers = self.threads or torch.get_num_threads()
+        depth_frames, self._depth_frames = self._depth_frames, None
         with torch_threads(1):
-            return self._preprocess(images, K, workers)
+            return self._preprocess(images, K, workers, depth_frames)
 
-    def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int) -> ClassicalInputs:
+    def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int,
+                    depth_frames: np.ndarray | None) -> ClassicalInputs:
         images, K = check_clip(images, K)
         src_hw = images.shape[1:3]
         images, K = _shrunk(images, K, self.max_side)
         n, H, W = images.shape[:3]
         h, w = self.working_size(H, W)
-        dev, f32 = self.device, torch.float32
+        dev = self.device
         img, K_t = resize_crop(images, K, (h, w), device=dev)
         gray = images if images.ndim == 3 else np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images])
 
         timings = {}
         t0 = time.perf_counter()
-        tracks = track_features(gray, max_features=self.max_features)
+        tracks = track_features(gray, options=self.tracker_options)
         timings["tracks_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         sfm = estimate_poses(tracks, K, bundle_adjust=self.bundle_adjust)
         timings["sfm_s"] = time.perf_counter() - t0
 
-        R = torch.as_tensor(sfm.R_wc, dtype=f32, device=dev)
-        t = torch.as_tensor(sfm.t_wc, dtype=f32, device=dev)
+        t_wc = sfm.t_wc
+        depth, conf = np.ones((n, h, w), np.float32), np.zeros((n, h, w), np.float32)
         if sfm.ok:
             t0 = time.perf_counter()
             near, far = _depth_range(sfm, tracks.visible, K, margin=2.0)
-            rng = torch.tensor([[near, far]], dtype=f32, device=dev).expand(n, 2)
-            rays = pixel_rays(K_t[0], h, w)  # [h*w,3], shared by the sweep and the scale normalisation
-            with torch.no_grad():
-                depth, conf = plane_sweep(img.mean(1, keepdim=True), K_t[0], R, t, rng, rays=rays,
-                                          workers=workers, **self.mvs_options)
+            K_w = K_t[0].double().cpu().numpy()  # the working resolution's intrinsics
+            swept = np.arange(n) if depth_frames is None else np.asarray(depth_frames, np.int64)
+            d, c = plane_sweep(img.mean(1).cpu().numpy(), K_w, sfm.R_wc, sfm.t_wc, np.tile([near, far], (n, 1)),
+                               frames=swept, workers=workers, **self.mvs_options)
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
-            pts = (R @ rays.T).view(n, 3, h, w) * depth[:, None] + t[:, :, None, None]
-            if float(conf.sum()) > 1e-6:
-                dist = (pts[:, 0].square() + pts[:, 1].square() + pts[:, 2].square()).sqrt()  # [n,h,w]
-                s = float((conf * dist).sum() / conf.sum())
+            if float(c.sum()) > 1e-6:
+                v, u = np.mgrid[0:h, 0:w]
+                rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K_w).T  # [h,w,3], z = 1
+                pts = np.einsum("rij,hwj->rhwi", sfm.R_wc[swept], rays) * d[..., None] + sfm.t_wc[swept, None, None]
+                s = float((c * np.linalg.norm(pts, axis=-1)).sum() / c.sum())
             else:
                 s = float(np.linalg.norm(sfm.points[np.isfinite(sfm.points[:, 0])], axis=1).mean())
-            t, depth = t / s, depth / s
+            depth[:] = np.nan
+            depth[swept], conf[swept] = d / s, c
+            t_wc = t_wc / s
             sfm.diagnostics["scale_divisor"] = s
-        else:
-            depth, conf = torch.ones(n, h, w, device=dev), torch.zeros(n, h, w, device=dev)
         dt = self.dtype
+        R, t, depth, conf = (torch.as_tensor(a, dtype=dt, device=dev) for a in (sfm.R_wc, t_wc, depth, conf))
         inputs = ClassicalInputs(
-            images=img.to(dt), K=K_t.to(dt), src_hw=src_hw,
-            base_R_wc=R.to(dt), base_t_wc=t.to(dt), base_depth=depth.to(dt), base_conf=conf.to(dt),
+            images=img.to(dt), K=K_t.to(dt), src_hw=src_hw, base_R_wc=R, base_t_wc=t, base_depth=depth, base_conf=conf,
             corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
             diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers})
         self.last_inputs = inputs

@@ -80,8 +80,7 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
             bl = torch.einsum("mnri,mnr->mi", WJl, r)
         Hcc_d = Hcc + lam * eye6 * Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
         Hll_inv = _inv3(Hll + lam * eye3 * Hll.diagonal(dim1=1, dim2=2)[:, :, None] + 1e-9 * eye3)
-        Hi = Hll_inv[:, None]  # Y = Hcl Hll^-1 [m,n-1,6,3], written out like Hcl
-        Y = Hcl[..., 0:1] * Hi[..., 0:1, :] + Hcl[..., 1:2] * Hi[..., 1:2, :] + Hcl[..., 2:3] * Hi[..., 2:3, :]
+        Y = torch.bmm(Hcl.reshape(len(Hcl), -1, 3), Hll_inv).view(Hcl.shape)  # Hcl Hll^-1 [m,n-1,6,3]
         # Schur complement S = Hcc - sum_m Y_m Hcl_m^T as one matrix product over (point, point coordinate).
         S = -(Y.permute(1, 2, 0, 3).reshape(6 * (n - 1), -1) @ Hcl.permute(1, 2, 0, 3).reshape(6 * (n - 1), -1).T)
         S = S.view(n - 1, 6, n - 1, 6)
