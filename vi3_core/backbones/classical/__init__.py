@@ -40,7 +40,7 @@ from vi3_core.backbones._hub import check_clip, resize_crop, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
-from vi3_core.backbones.classical.tracks import TrackerOptions, track_features
+from vi3_core.backbones.classical.tracks import track_features
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
 
@@ -139,7 +139,6 @@ class ClassicalBackbone(Backbone):
         self.threads = threads
         self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window)
         self.bundle_adjust = bundle_adjust
-        self.tracker_options = TrackerOptions(max_features=max_features)
         #: The last clip's inputs (status, reason, diagnostics); its corrections are what ``param_groups`` returns.
         self.last_inputs: ClassicalInputs | None = None
         self._depth_frames: np.ndarray | None = None  # of the clip bound, for its ``preprocess``
@@ -192,7 +191,7 @@ class ClassicalBackbone(Backbone):
 
         timings = {}
         t0 = time.perf_counter()
-        tracks = track_features(gray, options=self.tracker_options)
+        tracks = track_features(gray, max_features=self.max_features)
         timings["tracks_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         sfm = estimate_poses(tracks, K, bundle_adjust=self.bundle_adjust)
