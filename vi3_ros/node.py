@@ -164,7 +164,7 @@ class Vi3Node(Node):
             self.get_logger().warning(note)
         self.sink = _PublisherSink(self, types, self.settings)
         self.pipeline = make_pipeline(self.settings, sink=self.sink, types=types,
-                                                clock=lambda: self.get_clock().now().nanoseconds)
+                                      clock=lambda: self.get_clock().now().nanoseconds)
         inputs = self.settings.inputs
         self.image_topic = self.resolve_topic_name(inputs.image_topic)
         self._image_sub = None

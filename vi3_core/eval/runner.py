@@ -187,7 +187,7 @@ def check_sequence(seq: Sequence, *, options: EvalOptions, chained: bool = False
     if seq.calib is None:
         raise DataError(f"sequence {seq.name!r} has no camera calibration (pass --calib for bags without one)")
     sampled = clip_indices(len(seq.stamps), options=options, chained=chained)
-    covered = [idx for idx in sampled if seq.imu.covers(seq.stamps[idx[0]], seq.stamps[idx[-1]])]
+    covered = [idx for idx in sampled if _imu_covers(seq, idx)]
     if not covered:
         span = f"[{seq.imu.t[0]:.6f}, {seq.imu.t[-1]:.6f}] s" if len(seq.imu) else "(no sample)"
         raise DataError(f"sequence {seq.name!r}: the IMU {span} covers none of its {len(sampled)} clips "
@@ -198,9 +198,12 @@ def check_sequence(seq: Sequence, *, options: EvalOptions, chained: bool = False
 def skipped_clips(seq: Sequence, *, options: EvalOptions, chained: bool = False) -> list[np.ndarray]:
     """The sampled clips ``check_sequence`` leaves out (``IMU_MISSING``: no IMU sample at or before the first frame, or
     at or after the last)."""
-    covered = {int(idx[0]) for idx in check_sequence(seq, options=options, chained=chained)}
-    return [idx for idx in clip_indices(len(seq.stamps), options=options, chained=chained)
-            if int(idx[0]) not in covered]
+    return [idx for idx in clip_indices(len(seq.stamps), options=options, chained=chained) if not _imu_covers(seq, idx)]
+
+
+def _imu_covers(seq: Sequence, idx: np.ndarray) -> bool:
+    """Whether ``seq``'s IMU covers the clip of frames ``idx`` (``ImuSamples.covers``)."""
+    return seq.imu.covers(seq.stamps[idx[0]], seq.stamps[idx[-1]])
 
 
 def _stopped(seq: Sequence, idx: np.ndarray, err: Exception, evals: list[ClipEval],

@@ -35,12 +35,13 @@ import cv2
 import numpy as np
 import torch
 
-from vi3_core import so3_torch
+from vi3_core import so3, so3_torch
 from vi3_core.backbones._hub import check_clip, resize_crop, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
 from vi3_core.backbones.classical.tracks import track_features
+from vi3_core.camera import backproject
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
 
@@ -210,10 +211,9 @@ class ClassicalBackbone(Backbone):
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the
             # first camera centre (the world origin) = 1; the sparse points' mean distance if nothing is confident.
             if float(c.sum()) > 1e-6:
-                v, u = np.mgrid[0:h, 0:w]
-                rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K_w).T  # [h,w,3], z = 1
-                pts = np.einsum("rij,hwj->rhwi", sfm.R_wc[swept], rays) * d[..., None] + sfm.t_wc[swept, None, None]
-                s = float((c * np.linalg.norm(pts, axis=-1)).sum() / c.sum())
+                pts, _ = backproject(d, np.broadcast_to(K_w, (len(swept), 3, 3)),
+                                     so3.make_T(sfm.R_wc[swept], sfm.t_wc[swept]))  # [r,h*w,3]
+                s = float((c.reshape(len(swept), -1) * np.linalg.norm(pts, axis=-1)).sum() / c.sum())
             else:
                 s = float(np.linalg.norm(sfm.points[np.isfinite(sfm.points[:, 0])], axis=1).mean())
             depth[:] = np.nan
