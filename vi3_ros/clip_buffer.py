@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import statistics
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -334,7 +335,7 @@ class ClipBuffer:
         nominal = self._imu_dt_ns
         self._imu_dts.append(gap_ns)
         if (not nominal and len(self._imu_dts) >= 4) or self.imu_samples % 16 == 0:
-            self._imu_dt_ns = int(np.median(self._imu_dts))
+            self._imu_dt_ns = int(statistics.median(self._imu_dts))
         lost = missing_in_gap(gap_ns, nominal) if nominal else 0
         if not lost:
             return []
@@ -343,7 +344,7 @@ class ClipBuffer:
 
     def _frame_interval(self) -> float | None:
         """s: the median recent frame interval (None while fewer than two are known)."""
-        return float(np.median(self._intervals)) if len(self._intervals) >= 2 else None
+        return float(statistics.median(self._intervals)) if len(self._intervals) >= 2 else None
 
     def _gap_limit(self, interval: float | None) -> float | None:
         """s: the largest frame gap bridged, given the median frame ``interval`` (``_frame_interval``)."""

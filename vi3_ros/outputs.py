@@ -88,12 +88,13 @@ def cloud_points(geometry: Geometry, frames: np.ndarray, *, stride: int, conf_qu
     """Back-projected depth pixels of ``frames`` in the clip frame (the first camera), metres.
 
     Keeps every ``stride``-th pixel in each direction whose depth is finite, in (0, max_depth], and whose
-    confidence is at least the ``conf_quantile`` quantile of the clip's confidences. Returns points [N,3] float32
-    and confidence [N] float32. Vectorised over all selected frames."""
+    confidence is at least the ``conf_quantile`` quantile of the confidences of the clip's pixels with depth (a frame
+    the backbone gave no depth, NaN with zero confidence, does not lower it). Returns points [N,3] float32 and
+    confidence [N] float32. Vectorised over all selected frames."""
     P, d = backproject(geometry.depth[frames], geometry.K[frames], geometry.T_wc[frames], stride=stride)
     conf = geometry.conf[frames, ::stride, ::stride].astype(np.float64).reshape(len(P), -1)
-    finite_conf = geometry.conf[np.isfinite(geometry.conf)]
-    thr = np.quantile(finite_conf, conf_quantile) if conf_quantile > 0 and finite_conf.size else -np.inf
+    rated = geometry.conf[np.isfinite(geometry.depth) & np.isfinite(geometry.conf)]
+    thr = np.quantile(rated, conf_quantile) if conf_quantile > 0 and rated.size else -np.inf
     with np.errstate(invalid="ignore"):
         keep = np.isfinite(d) & (d > 0) & (d <= max_depth) & (conf >= thr)
     return P[keep].astype(np.float32), conf[keep].astype(np.float32)

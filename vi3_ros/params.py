@@ -262,7 +262,7 @@ PARAMS: tuple[Param, ...] = (
           choices=("last", "all")),
     Param("points_stride", OutputOptions, "~/points keeps every k-th depth pixel in each direction", range=(1, 64)),
     Param("points_conf_quantile", OutputOptions, "~/points drops pixels whose confidence is below this quantile of the "
-          "clip's confidences (backbone-independent; 0 keeps all)", range=(0.0, 0.99)),
+          "confidences of the clip's pixels with depth (backbone-independent; 0 keeps all)", range=(0.0, 0.99)),
     Param("points_max_depth", OutputOptions, "m; ~/points drops pixels farther than this", range=(0.1, 1000.0)),
     Param("diagnostics_period", OutputOptions, "s between /diagnostics summaries, which carry the dropped input "
           "messages counted by reason (node: timer; replay: bag time)", range=(0.05, 3600.0)),

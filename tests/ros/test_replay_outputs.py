@@ -30,7 +30,23 @@ def test_cloud_points_reproject_to_their_pixels():
     np.testing.assert_allclose(c, conf[2].ravel(), rtol=1e-6)
 
     pts, c = cloud_points(geom, np.arange(n), stride=2, conf_quantile=0.5, max_depth=20.0)
-    thr = np.quantile(conf, 0.5)
+    thr = np.quantile(conf[np.isfinite(depth)], 0.5)
     sub_d, sub_c = depth[:, ::2, ::2], conf[:, ::2, ::2]
     expected = np.isfinite(sub_d) & (sub_d <= 20.0) & (sub_c >= thr)
     assert len(pts) == expected.sum() and (c >= thr).all() and np.isfinite(pts).all()
+
+
+def test_cloud_points_threshold_ignores_frames_without_depth():
+    """A backbone that swept only some frames (the classical one in init mode) leaves the others NaN with zero
+    confidence: those zeros must not pull the confidence quantile down to keep every pixel."""
+    rng = np.random.default_rng(1)
+    n, h, w = 8, 10, 12
+    K = np.repeat(np.array([[15.0, 0, 5.5], [0, 15.0, 4.5], [0, 0, 1]])[None], n, 0)
+    depth = np.full((n, h, w), np.nan)
+    conf = np.zeros((n, h, w))
+    depth[-1] = rng.uniform(1.0, 5.0, (h, w))
+    conf[-1] = rng.uniform(0.1, 1.0, (h, w))
+    geom = Geometry(T_wc=np.repeat(np.eye(4)[None], n, 0), K=K, depth=depth, conf=conf, metric=True)
+    _, c = cloud_points(geom, np.array([n - 1]), stride=1, conf_quantile=0.3, max_depth=100.0)
+    thr = np.quantile(conf[-1], 0.3)
+    assert len(c) == (conf[-1] >= thr).sum() < h * w

@@ -310,6 +310,12 @@ class MetricFit:
         self._whiten(s, sigma_v, y, A)
         return y, A, rows, B
 
+    def _decomposed(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]) -> _Linear:
+        """``linearise`` at ``s`` with the thin SVD of its A."""
+        y, A, rows, B = self.linearise(s, sigma_v, priors)
+        U, sv, Vt = np.linalg.svd(A, full_matrices=False)
+        return _Linear(y, rows, B, U, sv, Vt)
+
     def _step(self, s: FitState, dx: np.ndarray, B: np.ndarray) -> FitState:
         L = self.layout
         g = s.g - self.G * B @ dx[L.g]
@@ -353,7 +359,8 @@ class MetricFit:
         if estimate and self.K != 1:
             raise ValueError("MetricFit: the visual noise can be estimated only in a single-clip fit")
         s, converged = self._gauss_newton(state.copy(), sigma_v, priors, iterations, tol, estimate)
-        result = self._result(s, sigma_v, priors, converged)
+        lin = self._decomposed(s, sigma_v, priors)
+        result = self._result(s, lin, sigma_v, converged)
         # The velocity ties are the IMU's word over a second; where the real IMU is worse than its model there
         # (scale-factor errors in fast turns, a changing bias) their residuals show it: their variance component,
         # estimated from them, widens them (at most 10x) before the scales are trusted.
@@ -363,45 +370,46 @@ class MetricFit:
                 break
             self.link_scale = min(self.link_scale * math.sqrt(vc), 10.0)
             s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False)
-            result = self._result(s, sigma_v, priors, converged)
+            lin = self._decomposed(s, sigma_v, priors)
+            result = self._result(s, lin, sigma_v, converged)
         # A 3DFM's errors are correlated in time (a scale drifting inside the clip, a depth-dependent bias): where the
         # window's visual residuals show a random walk of the positions beyond each clip's white noise, its variance
         # (restricted maximum likelihood over every clip, metric units) joins the error model before the scales are.
         if self.estimate_walk and self.K > 1:
-            walk = self._walk_reml(s, sigma_v, priors)
+            walk = self._walk_reml(s, sigma_v, priors, lin)
             if walk > 0.0:
                 self.walk = walk
                 s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False)
-                result = self._result(s, sigma_v, priors, converged)
+                result = self._result(s, self._decomposed(s, sigma_v, priors), sigma_v, converged)
         return result
 
-    def _walk_reml(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], *,
+    def _walk_reml(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], start: _Linear, *,
                    iterations: int = 6) -> float:
         """The random walk's variance rate (m^2/s of metric position, shared by the clips) that maximises the
         restricted likelihood of the residuals at ``s``, each clip's white noise and the other rows' models held:
         Fisher scoring in the coordinates whitened at the current value, where the covariance's derivative is
         G = block-diag(lam_k^2 W_k M_k W_k^T) per axis and, with P the residual projector, the score is
-        (r^T G r - tr(P G)) / 2 and the information tr(P G P G) / 2. 0 where the residuals show none."""
+        (r^T G r - tr(P G)) / 2 and the information tr(P G P G) / 2. 0 where the residuals show none. ``start``:
+        ``_decomposed`` at ``s`` with the current walk (the solution's own, where the scoring starts)."""
         walk = self.walk
-        for _ in range(iterations):
+        for it in range(iterations):
             self.walk = walk
-            y, A, _, _ = self.linearise(s, sigma_v, priors)
-            U, sv, _ = np.linalg.svd(A, full_matrices=False)
-            Q = U[:, sv > 1e-10 * sv[0]]  # P = I - Q Q^T
-            r = y - Q @ (Q.T @ y)
+            lin = start if it == 0 else self._decomposed(s, sigma_v, priors)
+            Q = lin.U[:, lin.sv > 1e-10 * lin.sv[0]]  # P = I - Q Q^T
+            r = lin.y - Q @ (Q.T @ lin.y)
             QGQ = np.zeros((Q.shape[1], Q.shape[1]))
             rGr = trG = trGG = trQGG = 0.0
             for k, blk in enumerate(self.blocks):
                 n, W = len(blk.dtau), self._whitener(s, sigma_v, k)
                 G = s.lam[k] ** 2 * (W @ blk.walk_modes @ W.T if W.ndim == 2 else np.outer(W, W) * blk.walk_modes)
                 rows = slice(blk.row, blk.row + 3 * n)
-                rk, Qk = r[rows].reshape(n, 3), Q[rows].reshape(n, 3, -1)
+                rk, Qk = r[rows].reshape(n, 3), Q[rows].reshape(n, -1)  # Qk rows: frame, columns: (axis, q)
                 rGr += float(np.sum(rk * (G @ rk)))
                 trG += 3.0 * float(np.trace(G))
                 trGG += 3.0 * float(np.sum(G * G))
-                GQ = np.einsum("ij,jak->iak", G, Qk)
-                QGQ += np.einsum("iak,ial->kl", Qk, GQ)
-                trQGG += float(np.einsum("iak,iak->", GQ, GQ))
+                GQ = G @ Qk
+                QGQ += Qk.reshape(3 * n, -1).T @ GQ.reshape(3 * n, -1)
+                trQGG += float(np.vdot(GQ, GQ))
             score = 0.5 * (rGr - (trG - np.trace(QGQ)))
             info = 0.5 * (trGG - 2.0 * trQGG + float(np.sum(QGQ * QGQ.T)))
             new = max(walk + score / info, 0.0) if info > 0 else walk
@@ -461,10 +469,9 @@ class MetricFit:
                 break
         return math.sqrt(theta)
 
-    def _result(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...],
-                converged: bool) -> FitResult:
-        y, A, rows, B = self.linearise(s, sigma_v, priors)
-        U, sv, Vt = np.linalg.svd(A, full_matrices=False)
+    def _result(self, s: FitState, lin: _Linear, sigma_v: np.ndarray, converged: bool) -> FitResult:
+        """The solution at ``s`` from ``lin`` (``_decomposed`` there)."""
+        y, rows, B, U, sv, Vt = lin.y, lin.rows, lin.B, lin.U, lin.sv, lin.Vt
         keep = sv > 1e-10 * sv[0]
         cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep]
         undetermined = (np.abs(Vt[~keep]) > 1e-6).any(0) if (~keep).any() else np.zeros(self.layout.n, bool)
@@ -521,6 +528,19 @@ class _Block:
     RfT_J_ba: np.ndarray
     RfT_J_bg: np.ndarray
     RfT_hat_phi: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Linear:
+    """The whitened model at a state (``MetricFit.linearise``): y [m], the row ranges, g's tangent basis B [3,2], and
+    the thin SVD of its A [m,p]: U [m,r], sv [r], Vt [r,p] (r = min(m, p))."""
+
+    y: np.ndarray
+    rows: dict[str, range]
+    B: np.ndarray
+    U: np.ndarray
+    sv: np.ndarray
+    Vt: np.ndarray
 
 
 @dataclass(frozen=True)
