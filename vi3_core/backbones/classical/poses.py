@@ -71,7 +71,7 @@ def triangulate(uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray, t_wc: np.
     rows = np.concatenate([x[..., 0:1, None] * P[None, :, 2:3] - P[None, :, 0:1],
                            x[..., 1:2, None] * P[None, :, 2:3] - P[None, :, 1:2]], axis=2)  # [m,n,2,4]
     A = (rows * visible[..., None, None]).reshape(len(uv), -1, 4)
-    _, _, Vt = np.linalg.svd(A)
+    _, _, Vt = np.linalg.svd(A, full_matrices=False)
     Xh = Vt[:, -1]
     with np.errstate(divide="ignore", invalid="ignore"):
         return Xh[:, :3] / Xh[:, 3:]

@@ -1,7 +1,8 @@
 """Feature tracks through a clip: Shi-Tomasi corners followed frame to frame by pyramidal Lucas-Kanade (OpenCV).
 
 A forward-backward check drops tracks whose round trip misses its start, and fresh corners are detected in
-every frame away from the live tracks, so a track may start late but never resumes after it is lost.
+every frame but the last (a corner seen once constrains nothing) away from the live tracks, so a track may start late
+but never resumes after it is lost.
 """
 
 from __future__ import annotations
@@ -64,6 +65,8 @@ def track_features(gray: np.ndarray, *, max_features: int = 1000, min_distance: 
             ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
             rows[live_idx[ok], i] = nxt[ok]
             live_idx = live_idx[ok]
+        if i == n - 1:
+            break
         fresh = _detect(gray[i], rows[live_idx, i], count=max_features - len(live_idx),
                         min_distance=min_distance, quality=quality)
         if len(fresh):
