@@ -6,7 +6,6 @@ A transform ``T_XY`` maps points from frame Y to frame X (the pose of Y in X): a
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Sequence
 from typing import Any
 
@@ -14,7 +13,7 @@ import numpy as np
 
 from msg_adapters.errors import MalformedMessage
 from msg_adapters.fields import float_array, str_field, vector_field
-from msg_adapters.stamps import MAX_NS, NS_PER_S, make_header, stamp_to_ns
+from msg_adapters.stamps import make_header, stamp_parts, stamp_to_ns
 from msg_adapters.types import MessageTypes
 from vi3_core.so3 import R_to_quat, make_T, quat_to_R
 
@@ -151,9 +150,7 @@ class OdometryMessages:
         """The message stamped ``stamp_ns`` (int ns): position ``p`` [3] m, attitude ``q`` (x, y, z, w), linear ``v``
         [3] m/s and angular ``w`` [3] rad/s velocity in the child frame, covariances [36] float64 (row-major over x,
         y, z, rot x, rot y, rot z)."""
-        if not 0 <= stamp_ns <= MAX_NS:
-            raise MalformedMessage(f"stamp {stamp_ns} ns is outside the ROS 2 Time range [0, {MAX_NS}] ns")
-        sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+        sec, nanosec = stamp_parts(stamp_ns)
         if self.types.backend == "rclpy":
             msg = self._odometry()
             msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = sec, nanosec, self.frame_id
@@ -184,11 +181,8 @@ def odometry(T: np.ndarray, v_linear: np.ndarray, v_angular: np.ndarray, *, stam
     Covariances [6,6] or [36] over (x, y, z, rot x, rot y, rot z); default all zero.
     """
     T = _transforms(T, "T", single=True)
-    if isinstance(stamp_ns, bool) or not isinstance(stamp_ns, numbers.Integral):
-        raise MalformedMessage(f"stamp {stamp_ns!r} ({type(stamp_ns).__name__}) is not an integer number of "
-                               "nanoseconds")
     return OdometryMessages(frame_id=frame_id, child_frame_id=child_frame_id, types=types).make(
-        int(stamp_ns), T[:3, 3].tolist(), R_to_quat(T[:3, :3]).tolist(), _vector3(v_linear, "v_linear"),
+        stamp_ns, T[:3, 3].tolist(), R_to_quat(T[:3, :3]).tolist(), _vector3(v_linear, "v_linear"),
         _vector3(v_angular, "v_angular"), _covariance(pose_cov, "pose_cov"), _covariance(twist_cov, "twist_cov"))
 
 

@@ -41,11 +41,16 @@ def _check_ns(ns: int, what: str) -> int:
     return ns
 
 
-def ns_to_stamp(ns: int, *, types: MessageTypes) -> Any:
-    """Integer nanoseconds (int or numpy integer, >= 0) -> ``builtin_interfaces/Time``."""
+def stamp_parts(ns: int) -> tuple[int, int]:
+    """Integer nanoseconds (int or numpy integer, >= 0) -> (sec, nanosec) of a ``builtin_interfaces/Time``."""
     if isinstance(ns, bool) or not isinstance(ns, numbers.Integral):
         raise MalformedMessage(f"stamp {ns!r} ({type(ns).__name__}) is not an integer number of nanoseconds")
-    sec, nanosec = divmod(_check_ns(int(ns), f"stamp {int(ns)} ns"), NS_PER_S)
+    return divmod(_check_ns(int(ns), f"stamp {int(ns)} ns"), NS_PER_S)
+
+
+def ns_to_stamp(ns: int, *, types: MessageTypes) -> Any:
+    """Integer nanoseconds (int or numpy integer, >= 0) -> ``builtin_interfaces/Time``."""
+    sec, nanosec = stamp_parts(ns)
     return types.make("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
 
 

@@ -112,9 +112,16 @@ class _RosbagsTypes(MessageTypes):
 
 
 def _generated_message(full: str) -> type:
-    """The rclpy class of ``"pkg/msg/Name"`` from the package's generated Python module."""
+    """The rclpy class of ``"pkg/msg/Name"`` from the package's generated Python module. ModuleNotFoundError only
+    where the package is not installed; an installed one missing a module it imports is an ImportError."""
     package, _, name = full.split("/")
-    cls = getattr(importlib.import_module(f"{package}.msg"), name)
+    try:
+        module = importlib.import_module(f"{package}.msg")
+    except ModuleNotFoundError as exc:
+        if exc.name in (package, f"{package}.msg"):
+            raise
+        raise ImportError(f"{package}.msg is installed but cannot be imported: {exc}") from exc
+    cls = getattr(module, name)
     if not isinstance(cls, type):
         raise AttributeError(f"{package}.msg.{name} is not a message class")
     return cls

@@ -31,15 +31,17 @@ import numpy as np
 from msg_adapters.types import jazzy_types
 from vi3_core.backbones import make_backbone
 from vi3_core.backbones.recorded import RecordedBackbone, Recording, RecordingBackbone
-from vi3_core.dataset.asl import find_mav0, read_groundtruth, read_imu
+from vi3_core.dataset.asl import find_mav0, read_groundtruth
 from vi3_core.dataset.calib import write_euroc_sensor_yaml
 from vi3_core.dataset.generate import EUROC_CAM0, bench_cache_dir, cached_sequence, generation_tag
 from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.errors import DataError
 from vi3_core.online import OdomState
 from vi3_core.threads import torch_thread_settings
+from vi3_core.types import ImuSamples
 from vi3_ros.imu_odom import ImuOdometry
 from vi3_ros.io.convert import convert_to_rosbag2
+from vi3_ros.io.reader import open_sequence
 from vi3_ros.io.ros1 import write_ros1_bag
 from vi3_ros.params import parse_assignment, resolve
 from vi3_ros.replay import replay
@@ -126,7 +128,8 @@ def bench_pipeline(args: argparse.Namespace) -> dict:
     ``imu_odom_us_per_sample``: CPU microseconds of ``ImuOdometry.add`` per IMU sample of the input, its message
     built (rosbags classes, as replay writes them) and handed to a sink that keeps nothing (median of
     ``args.repeats`` passes)."""
-    inp, asl, settings = _bench_input(args)
+    inp, _, settings = _bench_input(args)
+    imu = open_sequence(inp).imu  # read first: an input without IMU fails before the replays
     recording = Recording()
     inner = make_backbone(settings.model.backbone, device=settings.model.device,
                           checkpoint=settings.model.checkpoint or None)
@@ -140,21 +143,23 @@ def bench_pipeline(args: argparse.Namespace) -> dict:
                                backbone=RecordedBackbone(recording, name=f"recorded {inner.name}")))
             cpu.append((time.process_time() - c0) / max(runs[-1].clips, 1))
     median = runs[int(np.argsort(cpu)[len(cpu) // 2])]
-    imu_us = [_imu_odom_cost(settings, asl) for _ in range(args.repeats or 3)]
+    imu_us = [_imu_odom_cost(settings, imu) for _ in range(args.repeats or 3)]
     return {"cpu_s_per_clip": round(float(np.median(cpu)), 4), "clips": median.clips,
             "recorded_clips": len(recording), "wall_s": round(median.wall_s, 3), "bag_s": round(median.bag_s, 3),
             "outcomes": dict(median.outcomes), "imu_odom_us_per_sample": round(float(np.median(imu_us)), 1),
             "backbone": inner.name, "input": str(inp), **torch_thread_settings()}
 
 
-def _imu_odom_cost(settings, asl: Path) -> float:
-    """CPU microseconds per sample of ``ImuOdometry.add`` over the IMU of ``asl`` (its first sample the chained
-    state's, at rest: the work per sample does not depend on the motion)."""
-    _, imu = read_imu(find_mav0(asl))
+def _imu_odom_cost(settings, imu: ImuSamples) -> float:
+    """CPU microseconds per sample of ``ImuOdometry.add`` over ``imu`` (its first sample the chained state's, at
+    rest: the work per sample does not depend on the motion), every sample propagated and published (no sigma or
+    bridge limit stops it)."""
     first = np.array([imu.t[0]])
     state = OdomState(first, np.eye(4)[None], np.zeros((1, 3)), np.zeros(3), np.zeros(3), 0.01, 0.001)
-    odom = ImuOdometry(settings.replace(imu_odom_max_sigma=0.0), types=jazzy_types(), publish=lambda *_: None)
-    odom.restart(state, lambda t: imu.select(slice(0, 1)))
+    span = float(imu.t[-1] - imu.t[0]) + 1.0
+    odom = ImuOdometry(settings.replace(imu_odom_max_sigma=0.0, online_max_bridge=span), types=jazzy_types(),
+                       publish=lambda *_: None)
+    odom.restart(state, lambda t: imu.select(slice(0, 1)))  # the samples since the state: its own only
     ns, gyro, accel = imu.t_ns.tolist(), imu.gyro, imu.accel
     c0 = time.process_time()
     for i in range(1, len(ns)):

@@ -15,7 +15,6 @@ from msg_adapters.types import jazzy_types
 from vi3_core import so3
 from vi3_core.errors import DataError
 from vi3_core.online import OdomState
-from vi3_core.online.propagator import PropagatedStates
 from vi3_core.sim.trajectory import R_MOUNT
 from vi3_ros.flight_frames import FLU_FROM_FRD, NED_FROM_ENU, frd_rotation
 from vi3_ros.flight_odom import (
@@ -124,9 +123,7 @@ def test_the_growth_since_the_chained_clip_is_added_to_its_variances():
     anchor = Anchor(3, 80, np.diag(chained[0]), np.diag(chained[1]), np.diag(zero[0]), np.diag(zero[1]))
 
     def at(tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        states = PropagatedStates(np.array([tau]), np.eye(4)[None], np.zeros((1, 3)), np.zeros((1, 3)),
-                                  np.array([tau]))
-        pose, twist = (c[0] for c in covariances(sigma_model(state, options).at(states.tau), options, 0.005))
+        pose, twist = (c[0] for c in covariances(sigma_model(state, options).at(np.array([tau])), options, 0.005))
         return (*anchor.propagated(pose, twist), np.diag(pose), np.diag(twist))
 
     pose0, twist0, _, _ = at(0.0)

@@ -508,20 +508,30 @@ def px4_msgs_env(tmp_path_factory) -> dict[str, str]:
     return dict(item.split("=", 1) for item in dump.stdout.decode().split("\0") if "=" in item)
 
 
-@pytest.mark.parametrize("case", ["broken_message_package", "tf_static_without_tf2_msgs"])
+@pytest.mark.parametrize("case", ["broken_message_package", "tf2_msgs_missing_a_dependency",
+                                  "tf_static_without_tf2_msgs"])
 def test_any_start_failure_is_exit_two_and_one_line(tmp_path, case):
     """Issue 31: a start error that was not a Vi3Error (an import failing inside a message package) ended in an
     AttributeError from ``destroy_node`` of the half-built node, a chained traceback and exit 1. Now: one line naming
-    the cause, exit 2. ``use_tf_static`` without tf2_msgs (no wheel provides it) is such a start error too."""
+    the cause, exit 2. An installed tf2_msgs that cannot import a module it needs is such a failure, not the "tf2_msgs
+    is not installed" fallback (it was, until the generated module's ModuleNotFoundError was told from the
+    package's). ``use_tf_static`` without tf2_msgs (no wheel provides it) is a start error too."""
     env = dict(os.environ)
-    if case == "broken_message_package":  # diagnostic_msgs as a package whose typesupport library is missing
-        pkg = tmp_path / "diagnostic_msgs" / "msg"
+    if case in ("broken_message_package", "tf2_msgs_missing_a_dependency"):
+        # diagnostic_msgs whose typesupport library is missing; tf2_msgs importing a module that is not installed
+        package, body, args, expected = {
+            "broken_message_package": (
+                "diagnostic_msgs", "raise ImportError('libdiagnostic_msgs__rosidl_typesupport_c.so: cannot open "
+                "shared object file')\n", [], "cannot start: ImportError: libdiagnostic_msgs__rosidl_typesupport_c.so"),
+            "tf2_msgs_missing_a_dependency": (
+                "tf2_msgs", "import vi3_test_absent_dependency\n", ["--ros-args", "-p", "publish_tf:=true"],
+                "cannot start: ImportError: tf2_msgs.msg is installed but cannot be imported: No module named "
+                "'vi3_test_absent_dependency'")}[case]
+        pkg = tmp_path / package / "msg"
         pkg.mkdir(parents=True)
         (pkg.parent / "__init__.py").write_text("")
-        (pkg / "__init__.py").write_text("raise ImportError('libdiagnostic_msgs__rosidl_typesupport_c.so: cannot open "
-                                         "shared object file')\n")
+        (pkg / "__init__.py").write_text(body)
         env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env.get("PYTHONPATH", "")])
-        args, expected = [], "cannot start: ImportError: libdiagnostic_msgs__rosidl_typesupport_c.so"
     else:
         if importlib.util.find_spec("tf2_msgs") is not None:
             pytest.skip("tf2_msgs is installed here")

@@ -129,7 +129,7 @@ class Backbone(abc.ABC):
         caller reads (None: every frame); a backbone whose depth costs per frame may predict only those, the others
         NaN with zero confidence. Nothing for a model, which sees only its images and predicts every frame's depth in
         one pass; the evaluation's ground-truth instrument predicts from the clip's ground truth, and the
-        ``classical`` backbone carries each frame's tracking into the next clip that holds it (its stamps say)."""
+        ``classical`` backbone sweeps depth for ``depth_frames`` only."""
         return
 
     def diagnostics(self) -> dict:

@@ -12,7 +12,8 @@ up through the IMU recorded since its last frame.
 
 Uncertainty (``propagation_sigmas``) is that of the propagation relative to the chained pose at t_c, which the
 correction replaces: it grows with tau = t - t_c from the state's velocity and gravity-direction 1-sigmas and the IMU
-noise model. The position term is the one the estimator uses to decide whether a bridge still joins two clips.
+noise model. (A bridge between two clips, ``OnlineEstimator._placement``, knows the velocity at both ends and grows
+more slowly.)
 """
 
 from __future__ import annotations
@@ -110,30 +111,6 @@ class ImuState:
         return (R[0] * x + R[3] * y + R[6] * z, R[1] * x + R[4] * y + R[7] * z, R[2] * x + R[5] * y + R[8] * z)
 
 
-@dataclass(frozen=True)
-class PropagatedStates:
-    """States at m IMU sample stamps: t [m] s; T_OB [m,4,4] body poses in odom; v_O [m,3] m/s in odom; omega [m,3]
-    rad/s body rate (gyro - bg, body frame); tau [m] s since the last chained frame."""
-
-    t: np.ndarray
-    T_OB: np.ndarray
-    v_O: np.ndarray
-    omega: np.ndarray
-    tau: np.ndarray
-
-    @classmethod
-    def of(cls, states: list[ImuState]) -> PropagatedStates:
-        if not states:
-            return cls(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
-        R = np.array([s.R for s in states]).reshape(-1, 3, 3)
-        return cls(np.array([s.t for s in states]), so3.make_T(R, np.array([s.p for s in states])),
-                   np.array([s.v for s in states]), np.array([s.omega for s in states]),
-                   np.array([s.tau for s in states]))
-
-    def __len__(self) -> int:
-        return len(self.t)
-
-
 def _quat_R(q: Quat) -> tuple[float, ...]:
     """The rotation matrix (row-major, 9 floats) of a unit quaternion (x, y, z, w)."""
     x, y, z, w = q
@@ -182,12 +159,8 @@ class ImuPropagator:
         self._before: tuple[float, np.ndarray, np.ndarray] | None = None  # until then, the last sample <= t_c
         self.stopped = ""
 
-    def advance(self, imu: ImuSamples) -> PropagatedStates:
-        """The states at the samples of ``imu`` after the current time (none once ``stopped``)."""
-        return PropagatedStates.of(self.advance_states(imu))
-
     def advance_states(self, imu: ImuSamples) -> list[ImuState]:
-        """``advance`` as a list of ``ImuState``."""
+        """The states at the samples of ``imu`` after the current time (none once ``stopped``)."""
         out = []
         for t, gyro, accel in zip(imu.t.tolist(), imu.gyro, imu.accel):
             s = self.step(t, gyro, accel)
@@ -262,4 +235,4 @@ def _mul(R: tuple[float, ...], x: float, y: float, z: float) -> Vec3:
     return (R[0] * x + R[1] * y + R[2] * z, R[3] * x + R[4] * y + R[5] * z, R[6] * x + R[7] * y + R[8] * z)
 
 
-__all__ = ["ImuPropagator", "ImuState", "PropagatedStates", "PropagationSigmas", "SigmaModel", "propagation_sigmas"]
+__all__ = ["ImuPropagator", "ImuState", "PropagationSigmas", "SigmaModel", "propagation_sigmas"]

@@ -49,8 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="replay benchmark: any node parameter")
     p.add_argument("--threads", type=_threads, default=0, metavar="N",
-                   help="torch intra-op threads and the classical backbone's plane-sweep threads, set once before "
-                   "the benchmarks (the node parameter threads); 0 (default): min(2, CPUs this process may use)")
+                   help="torch intra-op threads, OpenCV's pool and the classical backbone's plane-sweep threads, set "
+                   "once before the benchmarks (the node parameter threads); 0 (default): min(2, CPUs this process "
+                   "may use)")
     p.set_defaults(func=run)
 
 

@@ -69,6 +69,7 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
     frames_normed = [np.ascontiguousarray(normed[..., f]) for f in range(n)]
     K_inv = np.linalg.inv(K)
     corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0], [w - 1.0, h - 1.0, 1.0]])
+    v, u = np.mgrid[0:h, 0:w]  # pixel rows and columns, for planes partly behind a source camera
 
     def sweep(i: int) -> tuple[np.ndarray, np.ndarray]:
         """Depth and confidence [h,w] of reference frame i; memory [h,w,k*D] a few times."""
@@ -90,7 +91,6 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
             unseen = np.isnan(warped)  # [h,w,D]
             ahead = (corners @ H[:, 2].T).min(0) > 1e-6  # [D] planes in front of the source camera everywhere
             for d in np.flatnonzero(~ahead):  # rare: a plane partly behind the source camera
-                v, u = np.mgrid[0:h, 0:w]
                 unseen[..., d] |= H[d, 2, 0] * u + H[d, 2, 1] * v + H[d, 2, 2] <= 1e-6
             np.copyto(warped, 0.0, where=unseen)
             # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
