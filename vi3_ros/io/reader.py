@@ -27,7 +27,7 @@ from __future__ import annotations
 import functools
 import heapq
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -369,11 +369,8 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     if not images:
         raise DataError(f"{path}: the image topic has no messages")
     images.sort(key=lambda e: e.t_ns)
-    imus.sort(key=lambda e: e.t_ns)
     cam_ns = np.array([e.t_ns for e in images], dtype=np.int64)
-    imu_ns = np.array([e.t_ns for e in imus], dtype=np.int64)
-    imu = ImuSamples(imu_ns * 1e-9, np.array([e.gyro for e in imus]).reshape(-1, 3),
-                     np.array([e.accel for e in imus]).reshape(-1, 3), t_ns=imu_ns)
+    imu = imu_samples(imus)
     gt = None
     if len(gts) >= 2:
         gts.sort(key=lambda e: e.t_ns)
@@ -382,7 +379,15 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     frames = [e.image for e in images]
     name = path.stem if kind != "rosbag2" else path.name
     return Sequence(name=name, stamps=cam_ns * 1e-9, imu=imu, calib=calib, gt=gt,
-                    load_image=functools.partial(_frame, frames), stamps_ns=cam_ns, imu_ns=imu_ns)
+                    load_image=functools.partial(_frame, frames), stamps_ns=cam_ns, imu_ns=imu.t_ns)
+
+
+def imu_samples(events: Iterable[ImuEvent]) -> ImuSamples:
+    """IMU events -> ``ImuSamples`` in stamp order, times from the exact ns stamps (``t_ns``)."""
+    imus = sorted(events, key=lambda e: e.t_ns)
+    ns = np.array([e.t_ns for e in imus], dtype=np.int64)
+    return ImuSamples(ns * 1e-9, np.array([e.gyro for e in imus]).reshape(-1, 3),
+                      np.array([e.accel for e in imus]).reshape(-1, 3), t_ns=ns)
 
 
 def _frame(frames: list[np.ndarray], i: int) -> np.ndarray:
