@@ -7,7 +7,7 @@ frame (the worker thread; in the node the clip lands seconds after its frames, s
 every IMU sample then goes to ``add`` (the input thread), which advances ``vi3_core.online.propagator.ImuPropagator``
 and publishes ``nav_msgs/Odometry`` at most ``imu_odom_rate`` times per second of IMU time (every sample when that is
 the IMU's rate or more), stamped with the sample's own stamp. Pose covariance over (x, y, z, rot x, rot y, rot z) in
-``odom_frame``: ``propagation_sigmas`` since the last chained frame (zero at it; the chained pose's own uncertainty in
+``odom_frame``: ``SigmaModel``'s since the last chained frame (zero at it; the chained pose's own uncertainty in
 odom is not modelled); twist covariance in ``base_frame``: the velocity sigma and the gyro's white noise per sample.
 Nothing is published before the first chained clip, nor once the propagation stopped (an IMU gap longer than
 ``max_imu_gap``, a non-finite sample, ``online_max_bridge`` s without a chained clip, or a horizontal position 1-sigma

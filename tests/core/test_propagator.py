@@ -1,6 +1,6 @@
 """``vi3_core.online.propagator``: the chained state propagated with the IMU between clips (~/odom/imu), on analytic
 drone trajectories with simulated IMU (``vi3_core.sim``): exact from an exact state, the same per sample as in one
-batch, stopped where the IMU stops supporting it, and uncertain as much as ``propagation_sigmas`` says."""
+batch, stopped where the IMU stops supporting it, and uncertain as much as ``SigmaModel`` says."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from vi3_core import so3
 from vi3_core.init.options import InitOptions
 from vi3_core.online import OdomState
-from vi3_core.online.propagator import ImuPropagator, propagation_sigmas
+from vi3_core.online.propagator import ImuPropagator, SigmaModel
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.imu import ImuNoise, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
@@ -143,9 +143,10 @@ def test_the_spread_of_propagation_errors_is_what_the_sigmas_say(drone):
         idx = np.searchsorted(out.tau, taus - 1e-9)
         errors.append(out.T_OB[idx, :3, 3] - traj.position_W(out.t[idx]))
     spread = np.array(errors).std(axis=0)  # [taus, xyz]
-    s = propagation_sigmas(taus, v_sigma=v_sigma, g_sigma=g_sigma, noise=noise, gravity_norm=G)
+    model = SigmaModel.of(v_sigma=v_sigma, g_sigma=g_sigma, noise=noise, gravity_norm=G)
+    s = model.at(taus)
     np.testing.assert_allclose(spread[:, :2], np.stack([s.position_h] * 2, 1), rtol=0.25)
     np.testing.assert_allclose(spread[:, 2], s.position_v, rtol=0.25)
     assert np.all(np.diff(s.position_h) > 0) and np.all(s.position_h > s.position_v)
-    zero = propagation_sigmas(0.0, v_sigma=v_sigma, g_sigma=g_sigma, noise=noise, gravity_norm=G)
+    zero = model.at(np.asarray(0.0))
     assert zero.position_h == 0.0 and zero.velocity == v_sigma and zero.tilt == g_sigma

@@ -10,7 +10,7 @@ quaternion): numpy's per-call cost on 3-vectors made a sample cost 150 us of CPU
 over. The next chained clip replaces the state (the correction); a new ``ImuPropagator`` starts from it and catches
 up through the IMU recorded since its last frame.
 
-Uncertainty (``propagation_sigmas``) is that of the propagation relative to the chained pose at t_c, which the
+Uncertainty (``SigmaModel``) is that of the propagation relative to the chained pose at t_c, which the
 correction replaces: it grows with tau = t - t_c from the state's velocity and gravity-direction 1-sigmas and the IMU
 noise model. (A bridge between two clips, ``OnlineEstimator._placement``, knows the velocity at both ends and grows
 more slowly.)
@@ -48,9 +48,14 @@ class PropagationSigmas:
 
 @dataclass(frozen=True)
 class SigmaModel:
-    """``propagation_sigmas`` of one state as polynomials in tau: each 1-sigma squared is a sum of powers of tau, so a
-    state's sigmas at one tau cost a few float operations (the node evaluates them per IMU sample) and at many taus
-    one vectorised pass. Coefficients in SI units (``of``)."""
+    """The 1-sigmas of a propagation from a state whose velocity 1-sigma is v_sigma m/s and gravity direction 1-sigma
+    g_sigma rad, under the accelerometer and gyro white noise of an ``ImuNoiseModel`` (``of``). Position: v_sigma tau,
+    0.5 G g_sigma tau^2 (horizontal only) and the integrated accelerometer noise q_a tau^1.5 / sqrt(3), added in
+    quadrature; velocity: v_sigma, G g_sigma tau, q_a sqrt(tau); attitude: the gravity direction's sigma (tilt) and
+    the gyro noise q_g sqrt(tau). Bias errors are inside v_sigma / g_sigma at t_c and not propagated further.
+
+    Each 1-sigma squared is a sum of powers of tau, kept as its coefficients (SI units): a state's sigmas at one tau
+    cost a few float operations (the node evaluates them per IMU sample) and at many taus one vectorised pass."""
 
     v2: float  # v_sigma^2
     a2: float  # accelerometer white noise density^2
@@ -71,19 +76,6 @@ class SigmaModel:
         return PropagationSigmas(position_h=(pos_v2 + self.tilt2 * t2 * t2) ** 0.5, position_v=pos_v2**0.5,
                                  velocity=(self.v2 + self.gv2 * t2 + self.a2 * tau) ** 0.5,
                                  tilt=(self.g2 + self.w2 * tau) ** 0.5, yaw=(self.w2 * tau) ** 0.5)
-
-
-def propagation_sigmas(tau, *, v_sigma: float, g_sigma: float, noise: ImuNoiseModel,
-                       gravity_norm: float) -> PropagationSigmas:
-    """The 1-sigmas ``tau`` [m] (or scalar) s after a state whose velocity 1-sigma is ``v_sigma`` m/s and gravity
-    direction 1-sigma ``g_sigma`` rad, under the accelerometer and gyro white noise of ``noise``.
-
-    Position: v_sigma tau, 0.5 G g_sigma tau^2 (horizontal only) and the integrated accelerometer noise
-    q_a tau^1.5 / sqrt(3), added in quadrature; velocity: v_sigma, G g_sigma tau, q_a sqrt(tau); attitude: the
-    gravity direction's sigma (tilt) and the gyro noise q_g sqrt(tau). Bias errors are inside v_sigma / g_sigma at
-    t_c and not propagated further."""
-    model = SigmaModel.of(v_sigma=v_sigma, g_sigma=g_sigma, noise=noise, gravity_norm=gravity_norm)
-    return model.at(np.maximum(np.asarray(tau, dtype=np.float64), 0.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,4 +227,4 @@ def _mul(R: tuple[float, ...], x: float, y: float, z: float) -> Vec3:
     return (R[0] * x + R[1] * y + R[2] * z, R[3] * x + R[4] * y + R[5] * z, R[6] * x + R[7] * y + R[8] * z)
 
 
-__all__ = ["ImuPropagator", "ImuState", "PropagationSigmas", "SigmaModel", "propagation_sigmas"]
+__all__ = ["ImuPropagator", "ImuState", "PropagationSigmas", "SigmaModel"]
