@@ -1,18 +1,18 @@
 """Plane-sweep multi-view stereo with OpenCV and numpy: dense z-depth and a matching-cost confidence per frame.
 
 For a reference frame, ``n_depths`` fronto-parallel planes are swept uniformly in inverse depth over its depth
-range; each source image is warped onto every plane (the plane's homography, ``cv2.warpPerspective``) and compared
-with the reference by zero-mean normalised cross-correlation (ZNCC, approximated as described in ``plane_sweep``)
-over a ``window`` x ``window`` box (``cv2.boxFilter`` over all planes at once, planes as channels). The per-plane score
-is the mean of the ``best_k`` best sources (robust to occlusion), the depth the winning plane refined by a parabola
-through its neighbours, and the confidence the probability mass of a softmax over the scores within one plane of
-the winner, times the winning score: flat or repetitive texture, occlusions and pixels no source sees get a low
-confidence.
+range; each source image is warped onto every plane (the plane's homography as explicit maps, ``cv2.remap``) and
+compared with the reference by zero-mean normalised cross-correlation (ZNCC, approximated as described in
+``plane_sweep``) over a ``window`` x ``window`` box (``cv2.boxFilter`` over all planes at once, planes as channels).
+The per-plane score is the mean of the ``best_k`` best sources (robust to occlusion), the depth the winning plane
+refined by a parabola through its neighbours, and the confidence the probability mass of a softmax over the scores
+within one plane of the winner, times the winning score: flat or repetitive texture, occlusions and pixels no source
+sees get a low confidence.
 
 Reference frames are independent, so ``workers`` threads sweep them concurrently (OpenCV and numpy release the
-interpreter lock inside their calls); each frame's result is the same whatever the number of workers. Against the
-earlier torch sweep (``grid_sample`` and summed-area tables) this costs a quarter of the CPU per frame: the warps and
-box filters are OpenCV's, not a chain of broadcast tensor operations.
+interpreter lock inside their calls); each frame's result is the same bits whatever the number of workers and however
+they share OpenCV's thread pool. Against the earlier torch sweep (``grid_sample`` and summed-area tables) this costs a
+quarter of the CPU per frame: the warps and box filters are OpenCV's, not a chain of broadcast tensor operations.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 #: The warp's interpolation; pixels whose bilinear footprint leaves the source image come out NaN (not seen).
-_WARP = dict(flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+_WARP = dict(interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
 
 
 def select_sources(n: int, *, n_sources: int) -> np.ndarray:
@@ -68,30 +68,37 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
     energy = box(normed * normed)  # [h,w,n]
     frames_normed = [np.ascontiguousarray(normed[..., f]) for f in range(n)]
     K_inv = np.linalg.inv(K)
-    corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0], [w - 1.0, h - 1.0, 1.0]])
-    v, u = np.mgrid[0:h, 0:w]  # pixel rows and columns, for planes partly behind a source camera
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)  # pixel rows and columns
 
     def sweep(i: int) -> tuple[np.ndarray, np.ndarray]:
         """Depth and confidence [h,w] of reference frame i; memory [h,w,k*D] a few times."""
         inv_near, inv_far = 1.0 / depth_range[i, 0], 1.0 / depth_range[i, 1]
         inv = inv_near + steps * (inv_far - inv_near)
+        q = inv.astype(np.float32)[:, None, None]
         src = sources[i]
         D = n_depths
         zncc = np.empty((len(src), h, w, D), np.float32)
         prod = np.empty((h, w, 2 * D), np.float32)
+        xyz = np.empty((3, D, h, w), np.float32)  # the source pixel (x, y) and its depth z per plane
         ref = frames_normed[i][..., None]
         eps = np.float32(1e-6 * area * area)
         for s, j in enumerate(src):
             R_ji = R_wc[j].T @ R_wc[i]  # reference camera -> source camera
             t_ji = R_wc[j].T @ (t_wc[i] - t_wc[j])
-            # Source pixel of reference pixel x on the plane at inverse depth q: (H0 + q Ht) x (a homography).
-            H0, Ht = K @ R_ji @ K_inv, np.outer(K @ t_ji, K_inv[2])
-            H = H0[None] + inv[:, None, None] * Ht[None]  # [D,3,3]
-            warped = np.stack([cv2.warpPerspective(frames_normed[j], Hd, (w, h), **_WARP) for Hd in H], -1)
+            # Source pixel of reference pixel x = (u, v, 1) on the plane at inverse depth q: the homography
+            # K R_ji K^-1 x + q K t_ji (K^-1's last row is (0, 0, 1)), as explicit maps: cv2.warpPerspective
+            # computed them in row blocks starting where its thread's share began, so with concurrent sweeps (a busy
+            # OpenCV pool) a few pixels' depth moved from run to run; remap reads each pixel's own coordinates.
+            H0, Kt = (K @ R_ji @ K_inv).astype(np.float32), (K @ t_ji).astype(np.float32)
+            for r in range(3):
+                np.add(H0[r, 0] * u + H0[r, 1] * v + H0[r, 2], q * Kt[r], out=xyz[r])
+            z = xyz[2]
+            with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: behind the source camera, unseen below
+                np.divide(xyz[:2], z, out=xyz[:2])
+            warped = np.stack([cv2.remap(frames_normed[j], xyz[0, d], xyz[1, d], **_WARP) for d in range(D)], -1)
             unseen = np.isnan(warped)  # [h,w,D]
-            ahead = (corners @ H[:, 2].T).min(0) > 1e-6  # [D] planes in front of the source camera everywhere
-            for d in np.flatnonzero(~ahead):  # rare: a plane partly behind the source camera
-                unseen[..., d] |= H[d, 2, 0] * u + H[d, 2, 1] * v + H[d, 2, 2] <= 1e-6
+            if z[:, [0, -1]][:, :, [0, -1]].min() <= 1e-6:  # rare: a plane partly behind the source camera (z is
+                unseen |= (z <= 1e-6).transpose(1, 2, 0)  # affine in the pixel: least at a corner)
             np.copyto(warped, 0.0, where=unseen)
             # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
             # fractional shifts) from biasing the disparity toward whole pixels. Both box sums in one call.
