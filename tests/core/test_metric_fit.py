@@ -4,11 +4,15 @@ window, its marginalisation, and the preintegration's bias Jacobians it rests on
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from vi3_core import so3
 from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps, marginalise
+from vi3_core.fit.layout import PriorLayout
+from vi3_core.fit.prior import GaussianPrior
 from vi3_core.init import InitOptions, initialise
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.imu import ImuNoise, imu_stamps, simulate_imu
@@ -146,6 +150,46 @@ def test_marginalising_old_clips_keeps_their_evidence():
         assert np.degrees(so3.angle_between(reduced.state.g, R_f.T @ full.state.g)) < 0.05
         alone = _solve_window(imu, clips[drop:], bg, R_f.T @ full.state.g, T_BC, sigma_v=0.003 / scales[drop:])[1]
         assert np.median(reduced.scale_rel_sigma) < np.median(alone.scale_rel_sigma)  # the prior carries evidence
+
+
+def test_widening_a_prior_adds_the_bias_walk_and_leaves_free_directions_free():
+    """``GaussianPrior.widened``: where the information is invertible, the covariance plus the biases' walk, inverted
+    (to 1e-8), the mean kept; with g's radial direction free (as ``marginalise`` makes them) that direction stays
+    free and the rest is the covariance form on the complement. The prior in tests/core/data was a window's on a
+    generated sequence (``difficult`` seed 11, clip 34): widening it through the covariance ended the evaluation
+    with "Eigenvalues did not converge"."""
+    Z = PriorLayout
+    q = np.zeros(Z.n)
+    q[Z.ba], q[Z.bg] = 2e-5, 3e-9
+    rng = np.random.default_rng(4)
+    S = rng.standard_normal((Z.n, Z.n)) * 10 ** rng.uniform(1, 4, Z.n)
+    prior = GaussianPrior(rng.standard_normal(Z.n), S, rng.standard_normal(Z.n))
+    wide = prior.widened(2e-5, 3e-9)
+    expected = np.linalg.inv(np.linalg.inv(S.T @ S) + np.diag(q))
+    np.testing.assert_allclose(wide.sqrt_info.T @ wide.sqrt_info, expected, rtol=1e-8,
+                               atol=1e-8 * np.abs(expected).max())
+
+    def mean(p: GaussianPrior) -> np.ndarray:
+        return p.center - np.linalg.lstsq(p.sqrt_info, p.offset, rcond=None)[0]
+
+    np.testing.assert_allclose(mean(wide), mean(prior), atol=1e-9)
+
+    free = np.zeros(Z.n)
+    free[Z.g] = [0.2, -9.8, 0.5] / np.linalg.norm([0.2, -9.8, 0.5])
+    W = np.linalg.svd(np.eye(Z.n) - np.outer(free, free))[0][:, :-1]  # [n,n-1] the complement of ``free``
+    S_free = rng.standard_normal((Z.n - 1, Z.n - 1)) * 10 ** rng.uniform(1, 4, Z.n - 1) @ W.T
+    wide = GaussianPrior(np.zeros(Z.n), S_free, rng.standard_normal(Z.n - 1)).widened(2e-5, 3e-9)
+    assert np.abs(wide.sqrt_info @ free).max() < 1e-9 * np.abs(wide.sqrt_info).max()
+    info_W = W.T @ S_free.T @ S_free @ W
+    expected = W @ np.linalg.inv(np.linalg.inv(info_W) + W.T @ np.diag(q) @ W) @ W.T
+    np.testing.assert_allclose(wide.sqrt_info.T @ wide.sqrt_info, expected, atol=1e-8 * np.abs(expected).max())
+
+    saved = np.load(Path(__file__).parent / "data" / "prior_widening_failed.npz")
+    prior = GaussianPrior(saved["center"], saved["sqrt_info"], saved["offset"])
+    wide = prior.widened(float(saved["ba_var"]), float(saved["bg_var"]))
+    w = np.linalg.eigvalsh(wide.sqrt_info.T @ wide.sqrt_info)
+    assert np.all(np.isfinite(w)) and w[0] > -1e-9 * w[-1] and w[1] > 1e-6 * w[-1], w
+    np.testing.assert_allclose(mean(wide), mean(prior), atol=1e-9)
 
 
 @pytest.mark.parametrize("bad", ["model_noise", "bias_sigma"])

@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from vi3_core import so3
 from vi3_core.fit.layout import PriorLayout
@@ -42,11 +43,18 @@ class GaussianPrior:
 
     def widened(self, ba_var: float, bg_var: float) -> GaussianPrior:
         """The prior with ``ba_var`` ((m/s^2)^2) and ``bg_var`` ((rad/s)^2) added to the biases' variance per axis
-        (their random walk over the time the prior is carried); its mean stays where it was."""
-        cov = np.linalg.pinv(self.sqrt_info.T @ self.sqrt_info, hermitian=True)
-        cov[PriorLayout.ba, PriorLayout.ba] += ba_var * np.eye(3)
-        cov[PriorLayout.bg, PriorLayout.bg] += bg_var * np.eye(3)
-        S = sqrt_of_info(np.linalg.pinv(cov, hermitian=True))
+        (their random walk over the time the prior is carried); its mean stays where it was.
+
+        In square-root information form, as a square-root information filter adds process noise Q: with
+        A = S Q^1/2 and L L^T = I + A A^T, S' = L^-1 S, so that S'^T S' = S^T (I + A A^T)^-1 S = ((S^T S)^-1 + Q)^-1
+        (Woodbury) where S^T S is invertible, and directions S leaves free (g's radial one) stay free. Inverting the
+        information to a covariance and back amplified its round-off: on a generated sequence the pseudo-inverse
+        of a covariance with a 1e-18 negative eigenvalue gave an information of -1e18 and the window's fit failed."""
+        q = np.zeros(PriorLayout.n)
+        q[PriorLayout.ba], q[PriorLayout.bg] = ba_var, bg_var
+        A = self.sqrt_info * np.sqrt(q)
+        L = np.linalg.cholesky(np.eye(len(A)) + A @ A.T)
+        S = scipy.linalg.solve_triangular(L, self.sqrt_info, lower=True)
         # mean - center = -S^+ offset; the widened residual there keeps the same mean: S' (center - mean).
         return GaussianPrior(self.center, S, S @ np.linalg.lstsq(self.sqrt_info, self.offset, rcond=None)[0])
 
