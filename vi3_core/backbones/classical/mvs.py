@@ -74,31 +74,36 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
         """Depth and confidence [h,w] of reference frame i; memory [h,w,k*D] a few times."""
         inv_near, inv_far = 1.0 / depth_range[i, 0], 1.0 / depth_range[i, 1]
         inv = inv_near + steps * (inv_far - inv_near)
-        q = inv.astype(np.float32)[:, None, None]
+        q = inv.astype(np.float32)
         src = sources[i]
         D = n_depths
         zncc = np.empty((len(src), h, w, D), np.float32)
         prod = np.empty((h, w, 2 * D), np.float32)
-        xyz = np.empty((3, D, h, w), np.float32)  # the source pixel (x, y) and its depth z per plane
+        xyz = np.empty((3, h, w), np.float32)  # the source pixel (x, y) and its depth z on one plane
+        warped = np.empty((h, w, D), np.float32)
         ref = frames_normed[i][..., None]
         eps = np.float32(1e-6 * area * area)
         for s, j in enumerate(src):
             R_ji = R_wc[j].T @ R_wc[i]  # reference camera -> source camera
             t_ji = R_wc[j].T @ (t_wc[i] - t_wc[j])
             # Source pixel of reference pixel x = (u, v, 1) on the plane at inverse depth q: the homography
-            # K R_ji K^-1 x + q K t_ji (K^-1's last row is (0, 0, 1)), as explicit maps: cv2.warpPerspective
-            # computed them in row blocks starting where its thread's share began, so with concurrent sweeps (a busy
-            # OpenCV pool) a few pixels' depth moved from run to run; remap reads each pixel's own coordinates.
+            # K R_ji K^-1 x + q K t_ji (K^-1's last row is (0, 0, 1)), as explicit maps, plane by plane (they stay
+            # in cache): cv2.warpPerspective computed them in row blocks starting where its thread's share began,
+            # so with concurrent sweeps (a busy OpenCV pool) a few pixels' depth moved from run to run.
             H0, Kt = (K @ R_ji @ K_inv).astype(np.float32), (K @ t_ji).astype(np.float32)
-            for r in range(3):
-                np.add(H0[r, 0] * u + H0[r, 1] * v + H0[r, 2], q * Kt[r], out=xyz[r])
-            z = xyz[2]
-            with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: behind the source camera, unseen below
-                np.divide(xyz[:2], z, out=xyz[:2])
-            warped = np.stack([cv2.remap(frames_normed[j], xyz[0, d], xyz[1, d], **_WARP) for d in range(D)], -1)
+            rays = [H0[r, 0] * u + H0[r, 1] * v + H0[r, 2] for r in range(3)]  # [h,w] each
+            behind = []  # (plane, [h,w] pixels behind the source camera): rare, a plane partly behind it
+            for d in range(D):
+                for r in range(3):
+                    np.add(rays[r], q[d] * Kt[r], out=xyz[r])
+                with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: see ``behind``
+                    np.divide(xyz[:2], xyz[2], out=xyz[:2])
+                warped[..., d] = cv2.remap(frames_normed[j], xyz[0], xyz[1], **_WARP)
+                if xyz[2][[0, -1]][:, [0, -1]].min() <= 1e-6:  # z is affine in the pixel: least at a corner
+                    behind.append((d, xyz[2] <= 1e-6))
             unseen = np.isnan(warped)  # [h,w,D]
-            if z[:, [0, -1]][:, :, [0, -1]].min() <= 1e-6:  # rare: a plane partly behind the source camera (z is
-                unseen |= (z <= 1e-6).transpose(1, 2, 0)  # affine in the pixel: least at a corner)
+            for d, mask in behind:
+                unseen[..., d] |= mask
             np.copyto(warped, 0.0, where=unseen)
             # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
             # fractional shifts) from biasing the disparity toward whole pixels. Both box sums in one call.
