@@ -12,7 +12,7 @@ import pytest
 from vi3_core import so3
 from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps, marginalise
 from vi3_core.fit.layout import PriorLayout
-from vi3_core.fit.prior import GaussianPrior
+from vi3_core.fit.prior import GaussianPrior, sqrt_of_info
 from vi3_core.init import InitOptions, initialise
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.imu import ImuNoise, imu_stamps, simulate_imu
@@ -190,6 +190,19 @@ def test_widening_a_prior_adds_the_bias_walk_and_leaves_free_directions_free():
     w = np.linalg.eigvalsh(wide.sqrt_info.T @ wide.sqrt_info)
     assert np.all(np.isfinite(w)) and w[0] > -1e-9 * w[-1] and w[1] > 1e-6 * w[-1], w
     np.testing.assert_allclose(mean(wide), mean(prior), atol=1e-9)
+
+
+def test_square_root_of_an_information_with_an_unknown_it_says_nothing_about():
+    """``sqrt_of_info``: an unknown with no information (a zero diagonal) whose row holds round-off (1e-18) from the
+    Schur complement comes back as no information; the diagonal's floor was absolute (1e-300), which scaled that
+    row by 1e150 and returned S^T S off by 1e131."""
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((20, 5)) * [1.0, 10.0, 1e2, 1e3, 1e4]
+    info = np.zeros((6, 6))
+    info[:5, :5] = A.T @ A
+    info[5, :5] = info[:5, 5] = 1e-18
+    S = sqrt_of_info(info)
+    np.testing.assert_allclose(S.T @ S, info, atol=1e-12 * np.abs(info).max())
 
 
 @pytest.mark.parametrize("bad", ["model_noise", "bias_sigma"])
