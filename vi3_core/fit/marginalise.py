@@ -10,7 +10,7 @@ import numpy as np
 from vi3_core import so3
 from vi3_core.fit.layout import PriorLayout
 from vi3_core.fit.metric_fit import FitResult, MetricFit
-from vi3_core.fit.prior import GaussianPrior, sqrt_of_info
+from vi3_core.fit.prior import GaussianPrior, sqrt_of_info, unit_diagonal_scale
 
 
 def marginalise(fit: MetricFit, result: FitResult, drop: int,
@@ -34,7 +34,7 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     # An undetermined unknown of a dropped clip (a scale its data do not fix) carries nothing over: the pseudo-
     # inverse of the column-scaled block drops it instead of dividing by round-off.
     H_dd = H[np.ix_(gone, gone)]
-    d = np.sqrt(np.maximum(np.diag(H_dd), 1e-300))
+    d = unit_diagonal_scale(H_dd)
     H_dd_inv = np.linalg.pinv(H_dd / np.outer(d, d), rcond=1e-10, hermitian=True) / np.outer(d, d)
     X = H_dd_inv @ H[np.ix_(gone, kept)]
     H_m = H[np.ix_(kept, kept)] - H[np.ix_(kept, gone)] @ X

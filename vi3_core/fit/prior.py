@@ -66,14 +66,20 @@ def sqrt_of_info(info
 
     Every direction is kept, however weak: a cut-off (directions below 1e-12 of the largest dropped) made the prior
     jump wherever an eigenvalue crossed it, and on the real EuRoC IMU a 1e-13 relative change of the accelerometer
-    samples then moved the window's scale by 4 % and cascaded into confident wrong scales. A diagonal below 1e-24 of
-    the largest is scaled as if it were that: an unknown with no information but round-off in its row (1e-18 against a
-    zero diagonal) was scaled up by 1e150 and came back as an information of 1e131."""
-    diag = np.diag(info)
-    d = np.sqrt(np.maximum(diag, max(1e-24 * diag.max(), 1e-300)))
+    samples then moved the window's scale by 4 % and cascaded into confident wrong scales."""
+    d = unit_diagonal_scale(info)
     w, V = np.linalg.eigh(info / np.outer(d, d))
     return (V * np.sqrt(np.maximum(w, 0.0))).T * d
 
 
-__all__ = ["GaussianPrior", "sqrt_of_info"]
+def unit_diagonal_scale(info: np.ndarray) -> np.ndarray:
+    """d [m] such that info / outer(d, d) has a unit diagonal (info [m,m] symmetric PSD): the square roots of the
+    diagonal, each at least that of 1e-24 of the largest. An unknown with no information but round-off in its row
+    (1e-18 against a zero diagonal) was scaled up by 1e150 with an absolute floor (1e-300), and ``sqrt_of_info``
+    returned an information of 1e131 for it."""
+    diag = np.diag(info)
+    return np.sqrt(np.maximum(diag, max(1e-24 * diag.max(), 1e-300)))
+
+
+__all__ = ["GaussianPrior", "sqrt_of_info", "unit_diagonal_scale"]
 

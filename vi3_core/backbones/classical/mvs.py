@@ -93,14 +93,14 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
             H0, Kt = (K @ R_ji @ K_inv).astype(np.float32), (K @ t_ji).astype(np.float32)
             rays = [H0[r, 0] * u + H0[r, 1] * v + H0[r, 2] for r in range(3)]  # [h,w] each
             behind = []  # (plane, [h,w] pixels behind the source camera): rare, a plane partly behind it
-            for d in range(D):
-                for r in range(3):
-                    np.add(rays[r], q[d] * Kt[r], out=xyz[r])
-                with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: see ``behind``
+            with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: see ``behind``
+                for d in range(D):
+                    for r in range(3):
+                        np.add(rays[r], q[d] * Kt[r], out=xyz[r])
                     np.divide(xyz[:2], xyz[2], out=xyz[:2])
-                warped[..., d] = cv2.remap(frames_normed[j], xyz[0], xyz[1], **_WARP)
-                if xyz[2][[0, -1]][:, [0, -1]].min() <= 1e-6:  # z is affine in the pixel: least at a corner
-                    behind.append((d, xyz[2] <= 1e-6))
+                    warped[..., d] = cv2.remap(frames_normed[j], xyz[0], xyz[1], **_WARP)
+                    if xyz[2][[0, -1]][:, [0, -1]].min() <= 1e-6:  # z is affine in the pixel: least at a corner
+                        behind.append((d, xyz[2] <= 1e-6))
             unseen = np.isnan(warped)  # [h,w,D]
             for d, mask in behind:
                 unseen[..., d] |= mask
