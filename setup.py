@@ -50,7 +50,7 @@ setup(
     },
     entry_points={
         "console_scripts": [
-            "vi3 = vi3_ros.cli:program",
+            "vi3 = vi3_ros.entry:program",
             "vi3_node = vi3_ros.node:main",
         ],
     },

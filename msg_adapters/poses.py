@@ -15,7 +15,7 @@ from msg_adapters.errors import MalformedMessage
 from msg_adapters.fields import float_array, str_field, vector_field
 from msg_adapters.stamps import make_header, stamp_parts, stamp_to_ns
 from msg_adapters.types import MessageTypes
-from vi3_core.so3 import R_to_quat, make_T, quat_to_R
+from vi3_core.so3 import R_to_quat, make_T, orthonormality_error, quat_to_R
 
 _RIGID_TOL = 1e-4
 
@@ -33,7 +33,7 @@ def _transforms(T: Any, name: str, *, single: bool) -> np.ndarray:
     if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(initial=0.0) > _RIGID_TOL:
         raise MalformedMessage(f"{name} bottom row is not [0, 0, 0, 1]")
     R = T[..., :3, :3]
-    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0.0)
+    err = orthonormality_error(R)
     if err > _RIGID_TOL or (np.linalg.det(R) <= 0).any():
         raise MalformedMessage(f"{name} rotation block is not a rotation (|R^T R - I| = {err:.2g})")
     return T

@@ -9,7 +9,7 @@ clip_frame`` at the clip's last frame stamp; ``~/odom`` and its TF ``odom_frame 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -102,12 +102,31 @@ def cloud_points(geometry: Geometry, frames: np.ndarray, *, stride: int, conf_qu
 
 class ClipPublisher:
     """The messages of one stream's clips, built from its ``settings`` and handed to ``publish(key, msg, stamp_ns)``
-    (the Pipeline's, which drops them while it is closing). Used from the worker thread only."""
+    (the Pipeline's, which drops them while it is closing). Used from the worker thread only.
+
+    Every input was checked before a message is built, so a message that cannot be built is a bug: it is named in
+    ``errors`` (``take_errors``; the clip's status says so) and the clip's other messages, and the next clips', are
+    published as usual."""
 
     def __init__(self, settings: Settings, *, types: MessageTypes, publish: Callable[[str, Any, int], None],
                  flight: FlightOdometry | None = None) -> None:
         self.settings, self.types, self._publish, self.flight = settings, types, publish, flight
         self._path_ns: dict[float, int] = {}  # odom trajectory stamp (s) -> header stamp (ns) of ~/path
+        self.errors: list[tuple[str, str]] = []  # (output key, what failed) since ``take_errors``
+
+    def take_errors(self) -> list[tuple[str, str]]:
+        """The outputs that could not be built since the last call, as (key, "Type: message")."""
+        errors, self.errors = self.errors, []
+        return errors
+
+    def _send(self, key: str, stamp: int, build: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """Publish ``build(*args, **kwargs)`` as output ``key`` stamped ``stamp`` (ns), or name it in ``errors``."""
+        try:
+            msg = build(*args, **kwargs)
+        except Exception as exc:  # any failure of a builder is reported, not raised (see the class)
+            self.errors.append((key, f"{type(exc).__name__}: {exc}"))
+            return
+        self._publish(key, msg, stamp)
 
     def geometry(self, clip: Clip, geometry: Geometry, *, prefix: str, T_OC1: np.ndarray | None = None) -> None:
         """Poses, depth with its CameraInfo (the intrinsics of the undistorted image at the depth's resolution, no
@@ -118,27 +137,24 @@ class ClipPublisher:
         stamp = int(clip.stamps_ns[-1])
         frame = fr.clip_frame if T_OC1 is None else fr.odom_frame
         T_wc = geometry.T_wc if T_OC1 is None else T_OC1 @ geometry.T_wc
-        self._publish(prefix + "poses", pose_array(T_wc, stamp_ns=stamp, frame_id=frame, types=types), stamp)
+        self._send(prefix + "poses", stamp, pose_array, T_wc, stamp_ns=stamp, frame_id=frame, types=types)
         frames = np.arange(geometry.n) if out.depth_frames == "all" else np.array([geometry.n - 1])
         for i in frames:
-            s = int(clip.stamps_ns[i])
-            self._publish(prefix + "depth", depth_to_image(geometry.depth[i], stamp_ns=s, frame_id=fr.camera_frame,
-                                                           types=types), s)
-            h, w = geometry.depth[i].shape
-            self._publish(prefix + "depth_info", calib_to_camera_info(geometry.K[i], "plumb_bob", np.zeros(5), (w, h),
-                                                                      stamp_ns=s, frame_id=fr.camera_frame,
-                                                                      types=types), s)
+            s, (h, w) = int(clip.stamps_ns[i]), geometry.depth[i].shape
+            self._send(prefix + "depth", s, depth_to_image, geometry.depth[i], stamp_ns=s, frame_id=fr.camera_frame,
+                       types=types)
+            self._send(prefix + "depth_info", s, calib_to_camera_info, geometry.K[i], "plumb_bob", np.zeros(5), (w, h),
+                       stamp_ns=s, frame_id=fr.camera_frame, types=types)
         frames = np.arange(geometry.n) if out.points_frames == "all" else np.array([geometry.n - 1])
         pts, conf = cloud_points(geometry, frames, stride=out.points_stride, conf_quantile=out.points_conf_quantile,
                                  max_depth=out.points_max_depth)
         if T_OC1 is not None:
             pts = (pts.astype(np.float64) @ T_OC1[:3, :3].T + T_OC1[:3, 3]).astype(np.float32)
-        self._publish(prefix + "points", point_cloud2(pts, confidence=conf, stamp_ns=stamp, frame_id=frame,
-                                                      types=types), stamp)
+        self._send(prefix + "points", stamp, point_cloud2, pts, confidence=conf, stamp_ns=stamp, frame_id=frame,
+                   types=types)
         if fr.publish_tf and not prefix:
             T_last_clip = np.linalg.inv(geometry.T_wc[-1])
-            self._publish("tf", tf_message([(T_last_clip, fr.camera_frame, fr.clip_frame, stamp)], types=types),
-                          stamp)
+            self._send("tf", stamp, tf_message, [(T_last_clip, fr.camera_frame, fr.clip_frame, stamp)], types=types)
 
     def odom(self, clip: Clip, outcome: ClipOutcome, trajectory: Trajectory) -> Anchor | None:
         """~/odom (pose and twist of base_frame at the last frame of ``clip``, with ``chained_covariances``), ~/path
@@ -154,18 +170,17 @@ class ClipPublisher:
         sample_dt = float(np.median(np.diff(clip.imu.t)))
         zero = start_covariances(outcome.state, options=self.settings.init, sample_dt=sample_dt)
         pose_cov, twist_cov = chained_covariances(zero, trajectory)
-        self._publish("odom", odometry(T, T[:3, :3].T @ v_O, omega, stamp_ns=stamp, frame_id=fr.odom_frame,
-                                       child_frame_id=fr.base_frame, types=types, pose_cov=pose_cov,
-                                       twist_cov=twist_cov), stamp)
+        self._send("odom", stamp, odometry, T, T[:3, :3].T @ v_O, omega, stamp_ns=stamp, frame_id=fr.odom_frame,
+                   child_frame_id=fr.base_frame, types=types, pose_cov=pose_cov, twist_cov=twist_cov)
         keep = slice(max(len(trajectory.stamps) - self.settings.outputs.path_max_poses, 0), None)
         # The header stamps of the frames (exact ns), kept for the poses the path still shows.
         self._path_ns.update(zip(clip.stamps.tolist(), clip.stamps_ns.tolist()))
         self._path_ns = {t: self._path_ns[t] for t in trajectory.stamps[keep].tolist()}
         stamps_ns = list(self._path_ns.values())
-        self._publish("path", path(trajectory.T_OB[keep], stamp_ns=stamp, frame_id=fr.odom_frame, types=types,
-                                   stamps_ns=stamps_ns), stamp)
+        self._send("path", stamp, path, trajectory.T_OB[keep], stamp_ns=stamp, frame_id=fr.odom_frame, types=types,
+                   stamps_ns=stamps_ns)
         if fr.publish_odom_tf:
-            self._publish("tf", tf_message([(T, fr.odom_frame, fr.base_frame, stamp)], types=types), stamp)
+            self._send("tf", stamp, tf_message, [(T, fr.odom_frame, fr.base_frame, stamp)], types=types)
         if self.flight is None:
             return None
         anchor = self.flight.anchor(outcome, pose_cov=pose_cov, twist_cov=twist_cov, zero=zero)
@@ -175,13 +190,15 @@ class ClipPublisher:
 
 def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: float, *, drops: str,
                 clip_frame: str, result: AnchorResult | None = None, decision: OnlineDecision | None = None,
-                trajectory: Trajectory | None = None, rig: RigEstimate | None = None, rig_note: str = "") -> DiagStatus:
+                trajectory: Trajectory | None = None, rig: RigEstimate | None = None, rig_note: str = "",
+                output_errors: Sequence[tuple[str, str]] = ()) -> DiagStatus:
     """The ``~/status`` entry of one result of the node's clip ``index``, processed as ``clip`` (the frames it spans:
     ``t_first``, ``t_last``): ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
     wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
     ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), with the online
     window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment, and the
-    ``rig``'s self-calibration (key ``rig``; ``rig_note``: why the clip did not add to it or take all of it)."""
+    ``rig``'s self-calibration (key ``rig``; ``rig_note``: why the clip did not add to it or take all of it); the
+    outputs of the clip that could not be built (``ClipPublisher.take_errors``: key ``output_errors``, level ERROR)."""
     level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
     if drops and level is Level.OK:
         level = Level.WARN
@@ -214,7 +231,12 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})
     if result is not None:
         values.update({f"timing_{k}": f"{s:.4g}" for k, s in sorted(result.timings.items())})  # units in k
-    return DiagStatus(level, STATUS_NAME, f"{kind}: {reason}", clip_frame, values)
+    message = f"{kind}: {reason}"
+    if output_errors:
+        level = Level.ERROR
+        values["output_errors"] = "; ".join(f"{key}: {what}" for key, what in output_errors)
+        message += f"; outputs not built (a bug, please report): {', '.join(key for key, _ in output_errors)}"
+    return DiagStatus(level, STATUS_NAME, message, clip_frame, values)
 
 
 def result_reason(init: InitResult, result: AnchorResult | None) -> str:

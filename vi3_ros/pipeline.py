@@ -143,6 +143,7 @@ class Pipeline:
         self._period_drops: collections.Counter[str] = collections.Counter()
         self._previous_reasons: frozenset[str] = frozenset()
         self.outcomes: collections.Counter[str] = collections.Counter()
+        self.output_errors: collections.Counter[str] = collections.Counter()  # messages not built, by output key
         self.message_drops: collections.Counter[str] = collections.Counter()  # drops before the buffer, by reason
         self.closing = False  # set by close(): outputs of a clip still running are not published
         self.threads = use_threads(settings.model.threads)
@@ -318,9 +319,13 @@ class Pipeline:
         """~/status (and, for final results, /diagnostics) of one result of ``raw`` processed as ``clip``; ``result``
         None when anchoring did not run (data rejected before the backbone); ``decision``: the online window's (None
         without online)."""
+        errors = self.outputs.take_errors()
+        with self._lock:
+            self.output_errors.update(key for key, _ in errors)
         status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
-                             trajectory=self.stream.trajectory, rig=self._rig, rig_note=self._rig_note)
+                             trajectory=self.stream.trajectory, rig=self._rig, rig_note=self._rig_note,
+                             output_errors=errors)
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),
                    status, final=kind != "init" or self.settings.stream.mode == "init")
 
@@ -347,6 +352,7 @@ class Pipeline:
                       "worker_processed": self.worker.processed,
                       "worker_replaced": self.worker.replaced, "worker_errors": self.worker.errors}
             values.update({f"outcome_{k}": n for k, n in sorted(self.outcomes.items())})
+            values.update({f"output_error_{k}": n for k, n in sorted(self.output_errors.items())})
             values.update({f"drop_{k}": n for k, n in sorted((self.buffer.counts + self.message_drops).items())})
         if self.imu_odom is not None:
             values["imu_odom"] = self.imu_odom.status

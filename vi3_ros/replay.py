@@ -31,7 +31,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,7 +68,7 @@ from vi3_ros.io.reader import (
     resolve_input,
 )
 from vi3_ros.io.topics import IMAGE_TRANSPORTS
-from vi3_ros.outputs import published_outputs, stream_keys
+from vi3_ros.outputs import OutputSink, published_outputs, stream_keys
 from vi3_ros.params import NODE_NAME
 from vi3_ros.pipeline import ClipReport, Pipeline, make_pipeline
 from vi3_ros.settings import InputOptions, Settings
@@ -279,7 +279,8 @@ class ReplaySummary:
     (dropped ones included); written: messages per output topic; output: where they are (``--output``, or the
     partial output when no clip produced a result); realtime: fed at the recorded rate (``feed_lag_ms``: the most the
     feeding fell behind that rate, reading and decoding the input); checked: clips with a result (not skipped),
-    gyro_failures: those of them the gyro check rejected (``hint``)."""
+    gyro_failures: those of them the gyro check rejected (``hint``); output_errors: messages that could not be built,
+    by output (a bug; each clip's status names its own)."""
 
     clips: int = 0
     outcomes: Counter = field(default_factory=Counter)
@@ -294,6 +295,7 @@ class ReplaySummary:
     feed_lag_ms: float = 0.0
     checked: int = 0
     gyro_failures: int = 0
+    output_errors: Counter = field(default_factory=Counter)
 
     @property
     def hint(self) -> str:
@@ -335,6 +337,7 @@ class ReplaySummary:
                 "written": dict(sorted(self.written.items())),
                 "output": None if self.output is None else str(self.output),
                 **({"hint": self.hint} if self.hint else {}),
+                **({"output_errors": dict(sorted(self.output_errors.items()))} if self.output_errors else {}),
                 **({"realtime": True, "feed_lag_ms": round(self.feed_lag_ms, 1)} if self.realtime else {})}
 
     def text(self) -> str:
@@ -343,6 +346,9 @@ class ReplaySummary:
                  f"median latency: {d['median_latency_ms']} ms  bag: {d['bag_s']} s  wall: {d['wall_s']} s  "
                  f"realtime factor: {d['realtime_factor']}"]
         lines += [f"  {topic}: {n}" for topic, n in d["written"].items()]
+        if self.output_errors:
+            lines.append(f"outputs not built (a bug, please report; each clip's status names it): "
+                         f"{_counts(self.output_errors)}")
         return "\n".join(lines + ([f"hint: {self.hint}"] if self.hint else []))
 
 
@@ -463,7 +469,8 @@ def input_settings(input_path: Path, settings: Settings, *,
     return settings
 
 
-def _events(input_path: Path, settings: Settings, image_topic: str | None, imu_topic: str | None):
+def input_events(input_path: Path, settings: Settings, image_topic: str | None = None,
+                 imu_topic: str | None = None) -> Iterator[Event]:
     """The input's events as ``settings`` and the explicit topics choose them (``topic_requests``)."""
     image, imu = topic_requests(settings.inputs, image_topic, imu_topic)
     return iter_events(input_path, image=image, imu=imu, camera_info_topic=settings.inputs.camera_info_topic,
@@ -501,14 +508,14 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
         try:
             interrupts.release()  # a signal that came meanwhile interrupts here
             pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,
-                                     on_report=lambda r: _record_report(summary, r), backbone=backbone)
+                                     on_report=lambda r: record_report(summary, r), backbone=backbone)
             start = time.perf_counter()  # model loading is not part of the replay's speed
-            _run(pipeline, sink, _events(input_path, settings, image_topic, imu_topic), summary, settings,
-                 copy_inputs=copy_inputs, progress=progress, name=input_path.name)
+            feed_pipeline(pipeline, sink, input_events(input_path, settings, image_topic, imu_topic), summary,
+                          settings, copy_inputs=copy_inputs, progress=progress, name=input_path.name)
             summary.wall_s = time.perf_counter() - start
             summary.clips = pipeline.buffer.clips
             summary.drops = pipeline.drop_counts
-            summary.outcomes = Counter(pipeline.outcomes)
+            summary.outcomes, summary.output_errors = Counter(pipeline.outcomes), Counter(pipeline.output_errors)
             summary.written = Counter(sink.counts)
             interrupts.hold()  # the output is finished from here on: a signal is recorded (the command reports it)
         except BaseException as err:
@@ -539,12 +546,14 @@ class DiscardSink:
 class RigRun:
     """What ``replay_rig`` found: ``estimate``, the rig's self-calibration at the end (None when no clip reached the
     backbone); ``calib``, the configured camera calibration (None when none could be assembled); ``time_offset``, the
-    configured camera-IMU offset, s (t_imu = t_cam + time_offset); ``summary``, the replay's counts."""
+    configured camera-IMU offset, s (t_imu = t_cam + time_offset); ``summary``, the replay's counts; ``calib_file``,
+    the file the calibration came from ("" when it came from CameraInfo and /tf_static)."""
 
     estimate: RigEstimate | None
     calib: CameraCalib | None
     time_offset: float
     summary: ReplaySummary
+    calib_file: str = ""
 
 
 def replay_rig(input_path: str | Path, *, settings: Settings, progress: bool = True, image_topic: str | None = None,
@@ -559,10 +568,10 @@ def replay_rig(input_path: str | Path, *, settings: Settings, progress: bool = T
     summary, types = ReplaySummary(), jazzy_types()
     sink = DiscardSink()
     pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=True,
-                             on_report=lambda r: _record_report(summary, r))
+                             on_report=lambda r: record_report(summary, r))
     start = time.perf_counter()
-    _run(pipeline, sink, _events(input_path, settings, image_topic, imu_topic), summary, settings, copy_inputs=False,
-         progress=progress, name=input_path.name)
+    feed_pipeline(pipeline, sink, input_events(input_path, settings, image_topic, imu_topic), summary, settings,
+                  copy_inputs=False, progress=progress, name=input_path.name)
     summary.wall_s = time.perf_counter() - start
     summary.clips, summary.drops = pipeline.buffer.clips, pipeline.drop_counts
     summary.outcomes = Counter(pipeline.outcomes)
@@ -572,10 +581,10 @@ def replay_rig(input_path: str | Path, *, settings: Settings, progress: bool = T
         calib = None
     calibrator = pipeline.stream.calibrator
     return RigRun(calibrator.estimate if calibrator is not None and calibrator.clips else None, calib,
-                  settings.buffer.time_offset, summary)
+                  settings.buffer.time_offset, summary, settings.inputs.calib_file)
 
 
-def _record_report(summary: ReplaySummary, report: ClipReport) -> None:
+def record_report(summary: ReplaySummary, report: ClipReport) -> None:
     """A clip's final result in the summary: its latency, and whether the gyro check rejected it."""
     if np.isfinite(report.latency_s):
         summary.latencies_ms.append(report.latency_s * 1e3)
@@ -584,8 +593,8 @@ def _record_report(summary: ReplaySummary, report: ClipReport) -> None:
         summary.gyro_failures += report.reason.startswith(GYRO_FAILURE)
 
 
-def _run(pipeline: Pipeline, sink: McapSink | DiscardSink, events, summary: ReplaySummary, settings: Settings, *,
-         copy_inputs: bool, progress: bool, name: str) -> None:
+def feed_pipeline(pipeline: Pipeline, sink: OutputSink, events: Iterable[Event], summary: ReplaySummary,
+                  settings: Settings, *, copy_inputs: bool, progress: bool, name: str) -> None:
     """Feed every input event to the pipeline, the diagnostics timer in bag time (realtime: at the recorded rate, then
     wait for the worker to finish its clips); publish the final counts and close the pipeline (also when interrupted:
     a clip still running then publishes nothing). Sets ``summary.frames``, ``summary.bag_s`` and

@@ -46,10 +46,10 @@ from vi3_ros.io.ros1 import write_ros1_bag
 from vi3_ros.params import parse_assignment, resolve
 from vi3_ros.replay import replay
 from vi3_ros.replay_odom import odometry_report, read_odometry
+from vi3_ros.soak import peak_rss_mb, soak
 
 BENCH_SECONDS = 20.0
-
-
+SOAK_MINUTES = 30.0
 
 def _default_input(seconds: float) -> tuple[Path, Path, Path]:
     """(rosbag2 MCAP directory, calibration YAML, ASL folder) of the cached sequence of ``seconds``."""
@@ -148,6 +148,31 @@ def bench_pipeline(args: argparse.Namespace) -> dict:
             "recorded_clips": len(recording), "wall_s": round(median.wall_s, 3), "bag_s": round(median.bag_s, 3),
             "outcomes": dict(median.outcomes), "imu_odom_us_per_sample": round(float(np.median(imu_us)), 1),
             "backbone": inner.name, "input": str(inp), **torch_thread_settings()}
+
+
+def bench_soak(args: argparse.Namespace) -> dict:
+    """A long flight (``vi3_ros.soak``): the input (default: the generated 20 s bench bag) replayed in passes, time
+    going forward, for ``--minutes`` (default 30) of bag time, every clip as ``vi3 replay`` runs it. ``errors``: clips
+    ended in an error and messages that could not be built (0); ``outputs_per_clip``: messages per completed clip by
+    output; per pass its bag end time, clips, outcomes, median latency and resident memory; ``rss_mb`` and
+    ``peak_rss_mb`` of the first pass and the last, which must agree within 10 %."""
+    inp, _, settings = _bench_input(args)
+    minutes = args.minutes or SOAK_MINUTES
+    before = peak_rss_mb()
+    run = soak(inp, settings=settings, minutes=minutes)
+    s, passes = run.summary, run.passes
+    first, last = passes[0], passes[-1]
+    return {"input": str(inp), "minutes": minutes, "passes": len(passes), "bag_s": round(s.bag_s, 1),
+            "clips": s.clips, "errors": run.errors, "outcomes": dict(sorted(s.outcomes.items())),
+            "output_errors": dict(s.output_errors), "drops": dict(sorted(s.drops.items())),
+            "outputs_per_clip": {k: round(n / max(s.clips, 1), 2) for k, n in sorted(run.written.items())},
+            "cpu_s_per_clip": round(run.cpu_s / max(s.clips, 1), 4), "wall_s": round(s.wall_s, 1),
+            "realtime_factor": round(s.realtime_factor, 3), "peak_rss_mb_before": round(before, 1),
+            "rss_mb": {"first_pass": round(first.rss_mb, 1), "last_pass": round(last.rss_mb, 1)},
+            "peak_rss_mb": {"first_pass": round(first.peak_rss_mb, 1), "last_pass": round(last.peak_rss_mb, 1)},
+            "by_pass": [{"end_s": round(p.end_s, 1), "clips": p.clips, "outcomes": p.outcomes,
+                         "median_latency_ms": round(p.median_latency_ms, 1), "rss_mb": round(p.rss_mb, 1)}
+                        for p in passes], "backbone": args.backbone, **torch_thread_settings()}
 
 
 def _input_imu(inp: Path, *, seconds: float = 20.0) -> ImuSamples:

@@ -30,7 +30,12 @@ def _wrong(flight, path, *, rotation_deg=(0.0, 3.0, 0.0), timeshift=-0.020):
     truth = load_calib(flight / "mav0" / "cam0" / "sensor.yaml")
     T = truth.T_BC.copy()
     T[:3, :3] = so3.exp(-np.radians(rotation_deg)) @ T[:3, :3]
-    write_kalibr_camchain(dataclasses.replace(truth, T_BC=T, time_offset=timeshift), path)
+    write_kalibr_camchain(dataclasses.replace(truth, T_BC=T, time_offset=timeshift), path,
+                          rostopic="/camera/color/image_raw")
+    doc = yaml.safe_load(path.read_text())  # fields a user's Kalibr file has that vi3 does not read
+    doc["cam0"]["camera_model"], doc["cam0"]["cam_overlaps"] = "pinhole", [1]
+    doc["cam1"] = {"rostopic": "/camera/infra1/image_rect_raw", "resolution": [848, 480]}
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return truth
 
 
@@ -62,6 +67,11 @@ def test_calib_prints_a_kalibr_file_closer_to_the_truth_than_the_one_given(fligh
         assert fixed.time_offset == given.time_offset
     assert np.array_equal(fixed.K, given.K) and np.allclose(fixed.T_BC[:3, 3], given.T_BC[:3, 3], atol=1e-12)
     assert capsys.readouterr().out == ""  # the YAML went to --output only
+    # issue 39: every field it does not correct is kept (the topic was /cam0/image_raw whatever the file said)
+    written, original = yaml.safe_load(text), yaml.safe_load((tmp_path / "wrong.yaml").read_text())
+    for doc in (written, original):
+        del doc["cam0"]["T_cam_imu"], doc["cam0"]["timeshift_cam_imu"]
+    assert written == original
 
 
 def test_calib_json_and_a_refused_output(flight, tmp_path, capsys):
@@ -74,6 +84,11 @@ def test_calib_json_and_a_refused_output(flight, tmp_path, capsys):
     # an output onto the calibration it corrects is refused before anything runs
     assert cli.main([*args, "-o", str(tmp_path / "wrong.yaml"), "--force"]) == 2
     assert "would destroy the input" in capsys.readouterr().err
+    # issue 39: an empty name was taken for no --output (the YAML went to standard output, exit 0)
+    assert cli.main([*args, "-o", ""]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err == "vi3 calib: error: vi3 calib --output '': an empty name; name a YAML file (or leave " \
+        "--output out for standard output)\n"
 
 
 def test_eval_with_a_wrong_rig_reports_the_estimate_it_converged_to(euroc_v102, capsys):

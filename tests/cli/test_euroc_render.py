@@ -176,3 +176,20 @@ def test_a_clip_without_the_imu_it_needs_is_skipped_and_named_and_the_run_goes_o
     assert skipped["reason"] == "imu_missing" and skipped["frames"][0] == 0 and report["n_clips"] == n - 1 >= 2
     assert cli.main(args) == 0
     assert f"skipped: frames 0-{skipped['frames'][1]} (imu_missing)" in capsys.readouterr().out
+
+
+def test_ground_truth_with_unknown_biases_and_velocities_is_scored_without_them(euroc_v102, tmp_path, capsys):
+    """Issue 39: a motion-capture trajectory written in the EuRoC layout has ``nan`` for the velocities and the six
+    biases; it was refused whole (``row 1: 'nan' in column 12 is not a finite number``). Now the velocities come from
+    the positions, the bias metrics are unknown (null, ``--``), every other metric is scored; a NaN position stays an
+    error (the test above)."""
+    recording = _cut(euroc_v102, tmp_path / "rec" / "mav0", gt_before_ns=0, gt_after_ns=0)
+    gt_csv = recording / "state_groundtruth_estimate0" / "data.csv"
+    lines = gt_csv.read_text().splitlines()
+    gt_csv.write_text("\n".join([lines[0], *(",".join(r.split(",")[:8] + ["nan"] * 9) for r in lines[1:])]) + "\n")
+    args = ["eval", str(recording), "--backbone", "gt", "--gt-noise", "0.001,0.05", "--no-progress"]
+    assert cli.main([*args, "--json"]) == 0
+    init = json.loads(capsys.readouterr().out)["init"]
+    assert init["gyro_bias_err"] is None and init["v1_dir_deg"] is not None, init
+    assert cli.main(args) == 0
+    assert "Gyro-bias (rad/s) ↓" in capsys.readouterr().out

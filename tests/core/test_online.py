@@ -5,6 +5,7 @@ noise, like a 3DFM's), so they run in seconds."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -143,6 +144,9 @@ def test_a_broken_clip_is_rejected_and_named_and_the_window_goes_on(seq):
     assert "backbone failure" in online[k].reason or "inconsistent with the online window" in online[k].reason
     assert decisions[:k] == baseline[:k] and "reset" not in decisions[k + 1]
     assert online[k + 1].ok or online[k + 1].status.value == "unobservable"
+    # the rejected clip's status names the window it was tested against: its clips and the seconds they span
+    window, span = (float(w) for w in re.match(r"window (\d+) clips over ([\d.]+) s", decisions[k]).groups())
+    assert window >= 4 and span >= (window - 1) * 0.5, decisions[k]
 
 
 def test_oracle_init_without_gt_biases_uses_the_clips_own_gyro_bias(cache_dir):

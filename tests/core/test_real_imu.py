@@ -69,6 +69,10 @@ def test_gt_seed_makes_the_instrument_noise_repeatable_and_distinct(shared_dir, 
     assert base_errors(1, "a") == base_errors(1, "b") != base_errors(2, "c")
     assert cli.main(["eval", str(path), "--gt-seed", "1", "--no-progress"]) == 2
     assert "--gt-seed need --backbone gt" in capsys.readouterr().err
+    # issue 39: depth noise on an input without depth ground truth was ignored without a word (exit 0)
+    assert cli.main(["eval", str(path), "--backbone", "gt", "--gt-depth-noise", "0.1", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--gt-depth-noise needs depth ground truth" in err, err
 
 
 @pytest.mark.slow

@@ -208,6 +208,25 @@ def test_ctrl_c_in_the_first_moments_of_a_command_ends_130_without_a_traceback(t
     assert not (tmp_path / "out").exists() and _leftovers(tmp_path) == []
 
 
+@pytest.mark.parametrize("delay_s", [0.0, 0.002, 0.01, 0.03])
+def test_ctrl_c_while_the_console_script_imports_the_program_ends_130_without_a_traceback(delay_s):
+    """Issue 39: Ctrl-C in the first ~0.05 s, while the ``vi3`` console script imported the program, printed Python's
+    KeyboardInterrupt traceback. The script's module (``vi3_ros.entry``) takes SIGINT before anything else loads: a
+    signal ``delay_s`` into the imports that follow (the command line's, numpy's) ends the process quietly."""
+    from importlib.metadata import entry_points
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "vi3"]
+    assert script.value == "vi3_ros.entry:program"
+    code = ("import vi3_ros.entry, os, signal, threading, time\n"
+            f"threading.Timer({delay_s}, os.kill, (os.getpid(), signal.SIGINT)).start()\n"
+            "from vi3_ros import cli\n"
+            "cli.build_parser()\n"
+            "time.sleep(10)\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr == "vi3: interrupted by SIGINT before the command started; nothing was written\n"
+
+
 def test_ctrl_c_while_the_program_exits_ends_130_without_a_traceback():
     """The last milliseconds: a signal while the exit functions run (after the command's outputs are final)."""
     code = ("from vi3_ros import interrupts\n"

@@ -1,12 +1,16 @@
-"""The point cloud of a clip: back-projection into the clip frame, confidence and depth filtering."""
+"""The messages of a clip: the point cloud (back-projection into the clip frame, confidence and depth filtering), and
+an output that cannot be built."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from msg_adapters.diagnostics import Level
+from msg_adapters.types import jazzy_types
 from vi3_core import so3
-from vi3_core.types import Geometry
-from vi3_ros.outputs import cloud_points
+from vi3_core.types import Clip, Geometry, ImuSamples, InitResult, InitStatus
+from vi3_ros.outputs import ClipPublisher, clip_status, cloud_points
+from vi3_ros.params import resolve
 
 
 def test_cloud_points_reproject_to_their_pixels():
@@ -50,3 +54,27 @@ def test_cloud_points_threshold_ignores_frames_without_depth():
     _, c = cloud_points(geom, np.array([n - 1]), stride=1, conf_quantile=0.3, max_depth=100.0)
     thr = np.quantile(conf[-1], 0.3)
     assert len(c) == (conf[-1] >= thr).sum() < h * w
+
+
+def test_an_output_that_cannot_be_built_is_named_and_the_others_are_published():
+    """Issue 39: a pose that failed the message's rotation check ended the clip as ``skipped: error`` (and every later
+    clip the same way: the outputs stopped for good). A message that cannot be built is now named in the clip's
+    status (level ERROR, ``output_errors``) and the clip's other messages are published."""
+    n, h, w = 3, 6, 8
+    K = np.array([[10.0, 0, 3.5], [0, 10.0, 2.5], [0, 0, 1]])
+    T = np.repeat(np.eye(4)[None], n, 0)
+    T[1, :3, :3] = np.diag([1.0, 1.0, -1.0])  # a mirror: no pose message can carry it
+    geom = Geometry(T_wc=T, K=np.repeat(K[None], n, 0), depth=np.full((n, h, w), 2.0), conf=np.ones((n, h, w)))
+    imu = ImuSamples(np.linspace(-0.1, 0.5, 7), np.zeros((7, 3)), np.tile([0.0, 0.0, 9.81], (7, 1)))
+    clip = Clip(np.array([0.0, 0.2, 0.4]), np.zeros((n, h, w), np.uint8), K, np.eye(4), imu,
+                stamps_ns=np.array([0, 200_000_000, 400_000_000]))
+    sent = []
+    publisher = ClipPublisher(resolve({}), types=jazzy_types(), publish=lambda key, msg, stamp: sent.append(key))
+    publisher.geometry(clip, geom, prefix="")
+    errors = publisher.take_errors()
+    assert [key for key, _ in errors] == ["poses"] and errors[0][1].startswith("MalformedMessage: T rotation block")
+    assert sent == ["depth", "depth_info", "points"] and publisher.take_errors() == []
+    init = InitResult(InitStatus.UNOBSERVABLE, "too gentle")
+    status = clip_status(0, clip, init, "none", 0.1, drops="", clip_frame="clip", output_errors=errors)
+    assert status.level is Level.ERROR and status.values["output_errors"] == f"poses: {errors[0][1]}"
+    assert status.message.startswith("none: too gentle; outputs not built") and status.message.endswith(": poses")

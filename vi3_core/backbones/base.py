@@ -60,7 +60,9 @@ class Prediction:
 
     def geometry(self, scale: float = 1.0) -> Geometry:
         """Detached numpy ``Geometry`` with translation and depth multiplied by ``scale``."""
-        T = so3.make_T(self.R_wc.detach().double().cpu().numpy(), self.t_wc.detach().double().cpu().numpy() * scale)
+        # float32 rotations are 6e-8 from orthonormal: made rotations, since odom composes them without end
+        R = so3.nearest_rotation(self.R_wc.detach().double().cpu().numpy())
+        T = so3.make_T(R, self.t_wc.detach().double().cpu().numpy() * scale)
         return Geometry(T_wc=T, K=self.K.detach().double().cpu().numpy(),
                         depth=self.depth.detach().float().cpu().numpy() * scale,
                         conf=self.conf.detach().float().cpu().numpy(), metric=self.metric)

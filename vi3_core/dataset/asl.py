@@ -93,18 +93,19 @@ def read_csv(path: Path, *, columns: int, first: str = "#timestamp") -> tuple[np
     return np.array([ns for ns, _ in rows], dtype=np.int64), [cells for _, cells in rows]
 
 
-def iter_samples(path: Path, *, columns: int, finite: bool = False) -> Iterator[tuple[int, np.ndarray]]:
+def iter_samples(path: Path, *, columns: int, finite: int = 0) -> Iterator[tuple[int, np.ndarray]]:
     """The rows of a numeric EuRoC csv (IMU, ground truth) as (stamp ns, [columns-1] float64 values), checked as they
-    come: DataError naming the file and row when it has no row at all, a value is not a number (with ``finite``: not
-    a finite number) or a stamp is not after the previous one (a file must be sorted by time)."""
+    come: DataError naming the file and row when it has no row at all, a value is not a number (or, among the first
+    ``finite`` values, not a finite number) or a stamp is not after the previous one (a file must be sorted by
+    time)."""
     last = None
     for row_no, ns, cells in iter_csv(path, columns=columns):
         try:
             values = np.array([float(c) for c in cells])
         except ValueError as err:
             raise DataError(f"{path}: row {row_no}: non-numeric value ({err})") from None
-        if finite and not np.all(np.isfinite(values)):
-            col = int(np.argmin(np.isfinite(values)))
+        if finite and not np.all(np.isfinite(values[:finite])):
+            col = int(np.argmin(np.isfinite(values[:finite])))
             raise DataError(f"{path}: row {row_no}: {cells[col]!r} in column {col + 2} is not a finite number")
         if last is not None and ns <= last:
             raise DataError(f"{path}: its stamps are not increasing (unsorted, or a row repeated): row {row_no} "
@@ -115,7 +116,7 @@ def iter_samples(path: Path, *, columns: int, finite: bool = False) -> Iterator[
         raise DataError(f"{path}: no samples (a header and no rows)")
 
 
-def _read_samples(path: Path, columns: int, *, finite: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _read_samples(path: Path, columns: int, *, finite: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """A whole numeric EuRoC csv (``iter_samples``): ([R] int64 ns, [R, columns-1] float64), filled into arrays that
     double when full (at most twice the result's memory)."""
     ns, values, n = np.empty(1024, np.int64), np.empty((1024, columns - 1)), 0
@@ -238,15 +239,19 @@ def read_imu(mav0: Path) -> tuple[np.ndarray, ImuSamples]:
 
 
 def read_groundtruth(mav0: Path) -> GroundTruthTrack | None:
-    """state_groundtruth_estimate0/data.csv -> track (None when the folder is absent); DataError naming the row when a
-    value is not a finite number (the truth has no gaps to fill: a NaN is a broken file)."""
+    """state_groundtruth_estimate0/data.csv -> track (None when the folder is absent). The pose is the truth: a
+    position or rotation value that is not a finite number is a broken file (DataError naming the row). Velocities
+    and biases are estimates a motion-capture file may not have (``nan``, as when a TUM trajectory is written in this
+    layout): velocities with any NaN are derived from the positions (``GroundTruthTrack``), unknown biases stay NaN
+    (their metrics unknown)."""
     path = mav0 / "state_groundtruth_estimate0" / "data.csv"
     if not path.parent.is_dir():
         return None
-    ns, vals = _read_samples(path, 17, finite=True)
+    ns, vals = _read_samples(path, 17, finite=7)
     q_xyzw = vals[:, [4, 5, 6, 3]]
     T = so3.make_T(so3.quat_to_R(q_xyzw), vals[:, :3])
-    return GroundTruthTrack(ns * 1e-9, T, v_WB=vals[:, 7:10], bg=vals[:, 10:13], ba=vals[:, 13:16], t_ns=ns)
+    v_WB = vals[:, 7:10] if np.isfinite(vals[:, 7:10]).all() else None
+    return GroundTruthTrack(ns * 1e-9, T, v_WB=v_WB, bg=vals[:, 10:13], ba=vals[:, 13:16], t_ns=ns)
 
 
 def camera_stamps_without_images(imu_ns: np.ndarray, gt: GroundTruthTrack | None, rate_hz: float) -> np.ndarray:

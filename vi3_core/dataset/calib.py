@@ -161,6 +161,8 @@ def _matrix(value, name: str, path: Path) -> np.ndarray:
     if det < 0:
         raise CalibrationError(f"{path}: {name} is a mirror, not a rotation (determinant of its rotation part "
                                f"{det:.3f}; a camera pose has +1): check the sign of one axis")
+    # a rotation written to 8 digits is 1e-6 from orthonormal; every chained clip composes it twice
+    T[:3, :3] = so3.nearest_rotation(T[:3, :3])
     return T
 
 
@@ -202,9 +204,8 @@ def _numbers(value, key: str, count: int, kind: type, path: Path) -> list:
     return out
 
 
-def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
-    """Read an EuRoC ``sensor.yaml`` or a Kalibr camchain(-imucam) YAML (``camera`` picks the Kalibr entry)."""
-    path = Path(path)
+def _document(path: Path) -> dict:
+    """The YAML mapping of a calibration file; CalibrationError naming the file when it cannot be read as one."""
     if path.is_dir():
         raise CalibrationError(f"{path}: is a directory, not a calibration file (EuRoC sensor.yaml or Kalibr "
                                "camchain YAML)")
@@ -225,6 +226,13 @@ def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
         raise CalibrationError(f"{path}: not valid YAML: {yaml_problem(err)}") from None
     if not isinstance(doc, dict):
         raise CalibrationError(f"{path}: expected a YAML mapping, got {type(doc).__name__}")
+    return doc
+
+
+def load_calib(path, *, camera: str = "cam0") -> CameraCalib:
+    """Read an EuRoC ``sensor.yaml`` or a Kalibr camchain(-imucam) YAML (``camera`` picks the Kalibr entry)."""
+    path = Path(path)
+    doc = _document(path)
     if "T_BS" in doc:
         if doc.get("sensor_type", "camera") != "camera":
             raise CalibrationError(f"{path}: sensor_type is {doc['sensor_type']!r}, not a camera")
@@ -275,6 +283,20 @@ def kalibr_camchain(calib: CameraCalib, *, camera: str = "cam0", rostopic: str =
         "timeshift_cam_imu": float(calib.time_offset),
     }
     return yaml.safe_dump({camera: entry}, sort_keys=False, default_flow_style=None)
+
+
+def corrected_kalibr(path, calib: CameraCalib, *, camera: str = "cam0") -> str | None:
+    """The text of the Kalibr camchain ``path`` with ``camera``'s ``T_cam_imu`` and ``timeshift_cam_imu`` replaced by
+    ``calib``'s and every other field kept as the file has it (its comments excepted); None when ``path`` is not a
+    Kalibr camchain (an EuRoC sensor.yaml)."""
+    path = Path(path)
+    doc = _document(path)
+    entry = doc.get(camera)
+    if not isinstance(entry, dict) or "T_cam_imu" not in entry:
+        return None
+    entry["T_cam_imu"] = so3.inv_T(calib.T_BC).tolist()
+    entry["timeshift_cam_imu"] = float(calib.time_offset)
+    return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
 
 
 def write_kalibr_camchain(calib: CameraCalib, path, *, camera: str = "cam0", rostopic: str = "/cam0/image_raw") -> None:

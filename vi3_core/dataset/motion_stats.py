@@ -47,8 +47,9 @@ def motion_stats(path, *, start_s: float = 0.0, end_s: float = np.inf) -> dict[s
     t, gyro, accel = imu.t[keep], imu.gyro[keep], imu.accel[keep]
     R_WB = Slerp(gt.t, Rotation.from_matrix(gt.T_WB[:, :3, :3]))(t).as_matrix()
 
-    def bias(b):
-        return np.zeros((len(t), 3)) if b is None else np.stack([np.interp(t, gt.t, b[:, k]) for k in range(3)], 1)
+    def bias(b):  # an unknown bias (None, or NaN in the file) counts as 0: the motion, not the sensor, is described
+        return np.zeros((len(t), 3)) if b is None else \
+            np.nan_to_num(np.stack([np.interp(t, gt.t, b[:, k]) for k in range(3)], 1), nan=0.0)
 
     sos = butter(4, CUTOFF_HZ, fs=fs, output="sos")
     a_W = sosfiltfilt(sos, np.einsum("nij,nj->ni", R_WB, accel - bias(gt.ba)) + G_W, axis=0)

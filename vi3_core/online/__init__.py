@@ -3,10 +3,10 @@ priors from the odom state with their consistency tests, restarts, the chaining 
 gravity-aligned odom trajectory (REP-105), IMU-rate propagation between clips, and ``StreamEstimator``, the one
 per-clip loop of a stream that the node, replay and the evaluation drive."""
 
-from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
-from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator
+from vi3_core.online.chain import ChainedClip, OdomChain, OdomState, Trajectory, gravity_align
+from vi3_core.online.estimator import OnlineDecision, OnlineEstimator
 from vi3_core.online.options import OnlineOptions
 from vi3_core.online.stream import ClipOutcome, StreamEstimator, StreamOptions
 
-__all__ = ["ChainedClip", "ClipOutcome", "OdomState", "OnlineDecision", "OnlineEstimator", "OnlineOptions",
-           "StreamEstimator", "StreamOptions", "Trajectory", "gravity_align"]
+__all__ = ["ChainedClip", "ClipOutcome", "OdomChain", "OdomState", "OnlineDecision", "OnlineEstimator",
+           "OnlineOptions", "StreamEstimator", "StreamOptions", "Trajectory", "gravity_align"]

@@ -1,5 +1,5 @@
 """``OnlineEstimator``: metric state carried across the clips of a stream (beyond the paper, which treats every clip
-on its own), and the chaining of the clips into one continuous odom trajectory.
+on its own), and the chaining of the clips into one continuous odom trajectory (``chain.OdomChain``).
 
 Per clip: (1) the clip's own GT-free initialisation runs as always (its data checks, its gyro bias, and its visual
 noise from its own fit); (2) its rotations are checked against the gyro with the stream's bias (a backbone failure
@@ -11,11 +11,7 @@ velocity and biases come from that fit, and the scale is claimed only when its r
 scale over time. A gap in the IMU (or a bridge longer than ``online_max_bridge``), an out-of-order clip, or
 ``online_max_rejects`` inconsistent clips in a row restart the window (the accelerometer bias survives as a prior,
 the gyro-bias median and the odom attitude survive as they are); a restart clip is claimed only when its own sigma
-passes.
-
-Every claimed clip is placed in odom through the IMU from the last chained frame with both ends' velocities (the last
-pose without IMU; ``_placement``), levelled with its gravity, yaw kept; a placement whose bridge has no IMU or a
-position 1-sigma above ``online_max_bridge_sigma`` starts a new segment of the trajectory (``Trajectory.resets``).
+passes. Every claimed clip is then placed in odom (``update``).
 """
 
 from __future__ import annotations
@@ -26,43 +22,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import stats
 
-from vi3_core import so3
-from vi3_core.init import InitOptions, initialise_clip, validate
+from vi3_core.init import InitOptions, initialise_clip
 from vi3_core.init.gyro_bias import body_rotations, rotation_check
 from vi3_core.init.initializer import rotation_failure
-from vi3_core.online.chain import ChainedClip, Trajectory, gravity_align
+from vi3_core.online.chain import ChainedClip, OdomChain, OdomState, Trajectory, imu_gap
 from vi3_core.online.link import MeasuredLink, SharedFrames, measure_link
 from vi3_core.online.options import OnlineOptions
-from vi3_core.online.window import Member, Solution, Window
+from vi3_core.online.window import Member, Solution, Window, members_span
 from vi3_core.preintegration import preintegrate
 from vi3_core.threads import single_blas_thread
 from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus, ScaleFit
-
-
-@dataclass(frozen=True)
-class OdomState:
-    """The last chained clip: stamps [n] s, T_OB [n,4,4] body poses in odom, v_O [n,3] m/s, bg [3] rad/s and ba [3]
-    m/s^2 biases, v_sigma m/s and g_sigma rad: the largest 1-sigma of its first-frame velocity and gravity direction."""
-
-    stamps: np.ndarray
-    T_OB: np.ndarray
-    v_O: np.ndarray
-    bg: np.ndarray
-    ba: np.ndarray
-    v_sigma: float
-    g_sigma: float
-
-
-@dataclass(frozen=True)
-class Placement:
-    """Where the next clip's first body frame goes: R_OB1 [3,3], p_OB1 [3] m (re-levelled with the clip's gravity
-    when it is chained), why it starts a new segment ("" when the bridge from the last chained clip holds), and the
-    position 1-sigma (m, per axis) the IMU bridge to it adds (0 without one)."""
-
-    R_OB1: np.ndarray
-    p_OB1: np.ndarray
-    new_segment: str = ""
-    sigma: float = 0.0
 
 
 @dataclass
@@ -136,8 +105,7 @@ class OnlineEstimator:
         self.window = Window(noise=self.init_options.noise_model, gravity_norm=self.init_options.gravity_norm,
                              window_s=self.options.online_window, max_clips=self.options.online_max_clips,
                              visual_drift=self.init_options.visual_drift)
-        self.state: OdomState | None = None
-        self.trajectory = Trajectory()
+        self.chain = OdomChain(options=self.options, init_options=self.init_options)
         self.last = OnlineDecision()
         self._imu: ImuSamples | None = None
         self._imu_shift = 0.0  # s, the clock the kept IMU is on (``Clip.imu_shift``)
@@ -148,21 +116,25 @@ class OnlineEstimator:
         self._pending: float | None = None  # first stamp of the clip ``initialise`` saw last
         self.shared: SharedFrames | None = None  # the last frames of the newest clip in the window
         self._reset = ""  # why an estimator before this one was forgotten (``continue_after``), until a clip joins
-        self._new_segment = False  # the next chained clip starts a new segment (after a forgotten estimator)
+
+    @property
+    def state(self) -> OdomState | None:
+        """The last chained clip (``OdomChain.state``)."""
+        return self.chain.state
+
+    @property
+    def trajectory(self) -> Trajectory:
+        """The chained odom trajectory (``OdomChain.trajectory``)."""
+        return self.chain.trajectory
 
     def continue_after(self, previous: Trajectory, reason: str) -> None:
         """Go on from the trajectory of an estimator that was forgotten (``reason``: time went back, so nothing it
         knew holds): its segments count on, the next chained clip starts a new one at the odom origin, and the first
         clip that joins the window names ``reason`` as its reset."""
-        self.trajectory = Trajectory(resets=list(previous.resets))
-        self._new_segment = bool(len(previous.stamps) or previous.resets)
+        self.chain.continue_after(previous)
         self._reset = reason
 
-    @property
-    def g_O(self) -> np.ndarray:
-        return np.array([0.0, 0.0, -self.init_options.gravity_norm])
-
-    # ---- IMU bridge from the odom state ---------------------------------------------------------------------
+    # ---- the IMU kept for the window and the bridges ---------------------------------------------------------
 
     def _remember_imu(self, clip: Clip) -> None:
         """Keep the IMU of ``clip`` for the window's ties and the bridges to the next clips, all of it on the clip's
@@ -174,49 +146,6 @@ class OnlineEstimator:
         imu = _merge_imu(_merge_imu(old, clip.imu_history), clip.imu)
         if imu is not None:
             self._imu, self._imu_shift = imu.select(imu.t >= imu.t[-1] - self.options.imu_keep_s), clip.imu_shift
-
-    def _imu_gap(self, t0: float, t1: float) -> str:
-        """Why the kept IMU does not cover [t0, t1] ("" when it does)."""
-        if self._imu is None:
-            return "no IMU"
-        return validate.check_imu(self._imu.window(t0, t1), np.array([t0, t1]), self.init_options) or ""
-
-    def _placement(self, t1: float, init: InitResult) -> Placement:
-        """Where the clip starting at t1 goes: the odom state at its frame nearest before t1 carried to t1 through the
-        IMU, with both ends' velocities (the state's, and the clip's own first-frame velocity ``init.v1``); without
-        IMU over the gap (or state), the last pose (or the origin), starting a new segment.
-
-        Two ends: with v_a (state) and v_b (clip) in the body frame at t_k, v_b = v_a + g T + beta(T) gives
-        p(T) = (v_a + v_b) T / 2 + alpha(T) - beta(T) T / 2: gravity drops out, and a constant accelerometer-bias
-        error cancels (alpha and beta T / 2 grow alike), where a one-ended bridge v_a T + g T^2 / 2 + alpha(T) lets
-        a gravity tilt or a bias error grow with T^2 (metres over ten seconds). What is left: the two velocities'
-        errors times T / 2, and the accelerometer noise (q_a T^1.5 / sqrt(12) with both ends held)."""
-        st = self.state
-        if st is None:
-            return Placement(np.eye(3), np.zeros(3), "")
-        k = int(np.searchsorted(st.stamps, t1 + 1e-9, side="right")) - 1
-        if k < 0:
-            return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3],
-                             f"clip starts at {t1:.3f} s, before the previous clip's first frame")
-        R_k, p_k = st.T_OB[k, :3, :3], st.T_OB[k, :3, 3]
-        T = t1 - float(st.stamps[k])
-        if T < 1e-9:
-            return Placement(R_k, p_k)
-        max_bridge = self.options.online_max_bridge
-        why = (f"gap of {T:.2f} s > online_max_bridge {max_bridge} s" if T > max_bridge
-               else self._imu_gap(float(st.stamps[k]), t1))
-        if why:
-            return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3], f"no bridge over {T:.2f} s: {why}")
-        stamps = np.array([st.stamps[k], t1])
-        pre = preintegrate(self._imu.window(stamps[0], stamps[1]), stamps, init.bg, init.ba)
-        v_a, v_b = R_k.T @ st.v_O[k], pre.R[1] @ init.v1
-        d = 0.5 * (v_a + v_b) * T + pre.alpha[1] - 0.5 * pre.beta[1] * T
-        v1_sigma = init.fit.v1_sigma if init.fit is not None else 0.0
-        sigma = math.hypot(0.5 * T * math.hypot(st.v_sigma, v1_sigma),
-                           self.init_options.noise_model.accel_noise_density * T**1.5 / math.sqrt(12.0))
-        new = (f"bridge of {T:.2f} s has a position 1-sigma of {sigma:.2f} m > online_max_bridge_sigma "
-               f"{self.options.online_max_bridge_sigma}") if sigma > self.options.online_max_bridge_sigma else ""
-        return Placement(R_k @ pre.R[1], p_k + R_k @ d, new, sigma)
 
     def _filtered_bg(self, t1: float, bg: np.ndarray) -> tuple[np.ndarray, float]:
         """Median [3] rad/s of the own (rotation-based) gyro-bias estimates of the clips of the last
@@ -275,7 +204,7 @@ class OnlineEstimator:
         gap = t1 - float(self.window.members[-1].stamps[-1])
         if gap > self.options.online_max_bridge:
             return f"gap of {gap:.2f} s > online_max_bridge {self.options.online_max_bridge} s"
-        why = self._imu_gap(first, t_end)
+        why = imu_gap(self._imu, first, t_end, self.init_options)
         return f"IMU does not cover the window: {why}" if why else ""
 
     def initialise(self, clip: Clip, geometry: Geometry) -> InitResult:
@@ -289,7 +218,8 @@ class OnlineEstimator:
         free = initialise_clip(clip, geometry, options=io)
         t1, t_end = float(clip.stamps[0]), float(clip.stamps[-1])
         self._pending = t1
-        decision = OnlineDecision(window=len(self.window), prior=self.window.prior is not None)
+        decision = OnlineDecision(window=len(self.window), span_s=self.window.span_s,
+                                  prior=self.window.prior is not None)
         if free.status is InitStatus.REJECTED:  # bad data or a backbone failure: the window goes on without it
             return self._decide(free, replace(decision, rejected={"clip": free.reason}), free)
         bg, bg_sigma = self._filtered_bg(t1, free.bg)
@@ -349,7 +279,7 @@ class OnlineEstimator:
             self.shared = SharedFrames.of(clip, geometry, k=self.options.shared_frames, sigma_v=own.sigma_v)
         if measured is not None and not sol.linked(k):  # the clip it links to left the window (a restart)
             measured, link_note = None, "not used: the window restarted"
-        span = float(sol.members[-1].stamps[-1] - sol.members[0].stamps[0])
+        span = members_span(sol.members)
         decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset, joined=True,
                                   link=measured, link_note=link_note)
         g_k, v_k = sol.frame_state(k)
@@ -372,34 +302,13 @@ class OnlineEstimator:
                                        scale=s, scale_sigma=rel * s, ba=st.ba, v1=v_k, gravity_source="online_window",
                                        target=target, fit=fit, diagnostics=diag), decision, free)
 
-    # ---- chaining -------------------------------------------------------------------------------------------
-
     def update(self, clip: Clip, result: AnchorResult) -> ChainedClip | None:
-        """Place the anchored clip in odom (levelled with its gravity, yaw kept) and make it the state for the next
-        clip's bridge. A clip that is not ok, or that ``initialise`` did not see, is not placed."""
-        init = result.init
-        target = result.target or init.target
+        """Place the anchored clip in odom (``OdomChain.add``) through the kept IMU. A clip that is not ok, or that
+        ``initialise`` did not see last, is not placed."""
         pending, self._pending = self._pending, None
-        if not init.ok or target is None or result.mode == "none" or pending != float(clip.stamps[0]):
+        if pending != float(clip.stamps[0]):
             return None
-        place = self._placement(pending, init)
-        R_OB1 = gravity_align(place.R_OB1, init.g)
-        T_BC = clip.T_BC
-        T_B1B = T_BC @ result.geometry.T_wc @ so3.inv_T(T_BC)  # metric body poses in B1
-        T_OB = so3.make_T(R_OB1, place.p_OB1) @ T_B1B
-        v_O = target.v @ R_OB1.T
-        new_segment = (place.new_segment and self.state is not None) or self._new_segment
-        if new_segment:  # at the clip's first new frame
-            last = self.trajectory.stamps[-1] if len(self.trajectory.stamps) else -np.inf
-            self.trajectory.start_segment(float(clip.stamps[np.argmax(clip.stamps > last)]))
-            self._new_segment = False
-        fit = init.fit
-        self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg),
-                               np.asarray(init.ba), fit.v1_sigma if fit is not None else 0.0,
-                               fit.g_sigma if fit is not None else 0.0)
+        return self.chain.add(clip, result, self._imu)
 
-        chained = ChainedClip(self.state.stamps, T_OB, v_O)
-        # the clip's relative position error: its scale's and its levelling's (a tilt turns metres flown sideways)
-        rel = math.hypot(fit.scale_rel_sigma, fit.g_sigma) if fit is not None else init.scale_sigma / init.scale
-        self.trajectory.extend(chained, rel_sigma=rel, bridge_sigma=0.0 if new_segment else place.sigma)
-        return chained
+
+__all__ = ["OnlineDecision", "OnlineEstimator"]

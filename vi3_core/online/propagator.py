@@ -12,7 +12,7 @@ up through the IMU recorded since its last frame.
 
 Uncertainty (``SigmaModel``) is that of the propagation relative to the chained pose at t_c, which the
 correction replaces: it grows with tau = t - t_c from the state's velocity and gravity-direction 1-sigmas and the IMU
-noise model. (A bridge between two clips, ``OnlineEstimator._placement``, knows the velocity at both ends and grows
+noise model. (A bridge between two clips, ``OdomChain.placement``, knows the velocity at both ends and grows
 more slowly.)
 """
 
@@ -25,7 +25,7 @@ import numpy as np
 
 from vi3_core import so3
 from vi3_core.fit.noise import ImuNoiseModel
-from vi3_core.online.estimator import OdomState
+from vi3_core.online.chain import OdomState
 from vi3_core.types import ImuSamples
 
 Vec3 = tuple[float, float, float]

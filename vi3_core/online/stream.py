@@ -23,8 +23,8 @@ from vi3_core.anchor import MODES, AnchorOptions, anchor, check_mode
 from vi3_core.backbones.base import Backbone
 from vi3_core.init import InitOptions, oracle_init, validate
 from vi3_core.online.calibration import CalibrationOptions, RigCalibrator, RigEstimate
-from vi3_core.online.chain import ChainedClip, Trajectory
-from vi3_core.online.estimator import OdomState, OnlineDecision, OnlineEstimator
+from vi3_core.online.chain import ChainedClip, OdomState, Trajectory
+from vi3_core.online.estimator import OnlineDecision, OnlineEstimator
 from vi3_core.online.options import OnlineOptions
 from vi3_core.types import AnchorResult, Clip, InitResult, InitStatus
 

@@ -49,6 +49,11 @@ class Member:
     link: MeasuredLink | None = None
 
 
+def members_span(members: list[Member]) -> float:
+    """s from the first member's first frame to the last member's last frame (0 for none)."""
+    return float(members[-1].stamps[-1] - members[0].stamps[0]) if members else 0.0
+
+
 @dataclass
 class Solution:
     """A window fit: ``members`` fitted (the new clip last), its ``MetricFit`` and ``FitResult``, the priors used."""
@@ -84,6 +89,11 @@ class Window:
 
     def __len__(self) -> int:
         return len(self.members)
+
+    @property
+    def span_s(self) -> float:
+        """s the members span (``members_span``)."""
+        return members_span(self.members)
 
     def restart(self, *, ba_widen: float = 0.0) -> None:
         """Drop the members and the marginal prior; the accelerometer bias's last estimate survives as a prior, its
@@ -137,4 +147,4 @@ class Window:
 
 
 
-__all__ = ["Member", "Solution", "Window"]
+__all__ = ["Member", "Solution", "Window", "members_span"]

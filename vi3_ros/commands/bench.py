@@ -15,7 +15,10 @@ BENCHES: dict[str, str] = {
     "ttr": "vi3_core.anchor.bench:bench_ttr",
     "replay": "vi3_ros.replay_bench:bench_replay",
     "pipeline": "vi3_ros.replay_bench:bench_pipeline",
+    "soak": "vi3_ros.replay_bench:bench_soak",
 }
+#: Not part of ``vi3 bench all`` (``make bench``): half an hour of replay.
+LONG = ("soak",)
 
 
 def _load(name: str):
@@ -42,6 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the adapter's")
     p.add_argument("--input", default=None, help="input sequence for the replay and pipeline benchmarks")
     p.add_argument("--seconds", type=float, default=None, help="length of the generated replay input (default 20)")
+    p.add_argument("--minutes", type=float, default=None, help="soak benchmark: minutes of bag time to replay the "
+                   "input for, in passes (default 30)")
     p.add_argument("--realtime", action="store_true", help="replay benchmark: at the recorded rate into the node's "
                    "worker thread (vi3 replay --realtime)")
     p.add_argument("--backbone-delay", type=float, default=None, metavar="S",
@@ -72,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     use_threads(args.threads)
     args.param = [f"threads={args.threads}", *args.param]  # the replay's pipeline sets it again from its parameters
 
-    names = list(BENCHES) if args.name == "all" else [args.name]
+    names = [n for n in BENCHES if n not in LONG] if args.name == "all" else [args.name]
     status = 0
     for name in names:
         try:

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
             from vi3_ros.params import settings_from_cli
             from vi3_ros.replay import replay_rig
 
-            if args.output:
+            if args.output is not None:
                 _check_output(args)
             settings = settings_from_cli(args.params_file, args.param, {
                 "backbone": args.backbone, "calib_file": args.calib, "device": args.device})
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
             return 2
         text = _json(rig) if args.json else _yaml(rig, args.input)
         try:
-            if args.output:
+            if args.output is not None:
                 Path(args.output).write_text(text)
             else:
                 print(text, end="")
@@ -87,6 +87,9 @@ def _check_output(args: argparse.Namespace) -> None:
     from vi3_core.errors import DataError
     from vi3_core.paths import check_apart
 
+    if not args.output.strip():
+        raise DataError(f"vi3 calib --output {args.output!r}: an empty name; name a YAML file (or leave --output out "
+                        "for standard output)")
     out = Path(args.output)
     check_apart(out, [args.input, *([args.calib] if args.calib else [])], what="vi3 calib --output")
     if out.is_dir():
@@ -106,7 +109,7 @@ def _corrected(rig):
 
 
 def _yaml(rig, source: str) -> str:
-    from vi3_core.dataset.calib import kalibr_camchain
+    from vi3_core.dataset.calib import corrected_kalibr, kalibr_camchain
 
     est = rig.estimate
     corrected = _corrected(rig)
@@ -119,7 +122,9 @@ def _yaml(rig, source: str) -> str:
              (f"timeshift_cam_imu: {rig.time_offset:+.5f} s configured, {corrected.time_offset:+.5f} s corrected"
               if est.offset_applied else
               f"timeshift_cam_imu: {rig.time_offset:+.5f} s as configured (the offset is not observed well enough)")]
-    return "".join(f"# {line}\n" for line in lines) + kalibr_camchain(corrected)
+    # the configured Kalibr file with the corrected fields replaced, every other field as it was
+    text = corrected_kalibr(rig.calib_file, corrected) if rig.calib_file else None
+    return "".join(f"# {line}\n" for line in lines) + (text or kalibr_camchain(corrected))
 
 
 def _json(rig) -> str:

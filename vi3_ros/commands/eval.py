@@ -361,6 +361,10 @@ def _prepare(args: argparse.Namespace) -> tuple:
         except (Vi3Error, ValueError, OSError) as exc:
             problems.append(f"input {path}: {exc}")
             continue
+        if args.backbone == "gt" and args.gt_depth_noise is not None and seq.depth_gt == "none":
+            problems.append(f"input {path}: --gt-depth-noise needs depth ground truth (depth0/ of an ASL folder: "
+                            "vi3 make-bag without --no-depth), and it has none")
+            continue
         if seq.depth_gt.startswith("unreadable"):
             print(f"vi3 eval: {path}: depth ground truth {seq.depth_gt}; the depth metrics will be null",
                   file=sys.stderr)
