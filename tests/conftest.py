@@ -49,6 +49,14 @@ def euroc_v102(shared_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def v203(shared_dir: Path):
+    """The real EuRoC V2_03_difficult flight (IMU and ground truth at 200 Hz, no images) opened as a ``Sequence``."""
+    from vi3_core.dataset.asl import read_asl
+
+    return read_asl(_shared_mav0(shared_dir, "euroc_v203_imu_gt", "real EuRoC V2_03 IMU + GT"))
+
+
+@pytest.fixture(scope="session")
 def v102(euroc_v102: Path):
     """The real V1_02 recording opened as a ``Sequence`` (camera stamps on the IMU clock; no images)."""
     from vi3_core.dataset.asl import read_asl

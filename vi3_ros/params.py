@@ -155,8 +155,9 @@ PARAMS: tuple[Param, ...] = (
             "(clips a busy worker dropped); longer, or IMU missing: the window restarts", range=(0.1, 3600.0)),
     Param("online_max_bridge_sigma", OnlineOptions, "m; a clip placed through a bridge whose "
             "position 1-sigma exceeds this starts a new odom segment", range=(0.001, 1000.0)),
-    Param("online_consistency_p", OnlineOptions, "a clip whose residual in the window has a "
-            "chi-square tail probability below this is inconsistent (rejected)", range=(1e-12, 0.5)),
+    Param("online_consistency_p", OnlineOptions, "a clip whose residual in the window (chi-square), or whose own "
+          "scale against the window's, has a tail probability below this is inconsistent (rejected)",
+          range=(1e-12, 0.5)),
     Param("online_max_rejects", OnlineOptions, "inconsistent clips in a row that restart the "
             "window", range=(1, 1000)),
     Param("online_bg_window", OnlineOptions, "s; the gyro-bias prior is the median of the clips' "

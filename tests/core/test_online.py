@@ -19,9 +19,10 @@ from vi3_core.fit.position import fit_positions
 from vi3_core.init import initialise_clip
 from vi3_core.init.oracle import oracle_init
 from vi3_core.online import OnlineEstimator, OnlineOptions
+from vi3_core.online.estimator import scale_agreement
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.visual import PoseNoise, noisy_poses
-from vi3_core.types import AnchorResult, Geometry
+from vi3_core.types import AnchorResult, Geometry, ScaleFit
 
 TRUE_SCALE = 3.0  # metric = 3 x the fake backbone's translation
 NOISE = PoseNoise(pos_m=0.003, rot_deg=0.1)
@@ -187,3 +188,15 @@ def test_bad_stream_input_is_named_and_does_not_poison_the_window(seq):
     empty = make_clip(seq, idx[8], with_depth=False)
     empty = replace(empty, imu=empty.imu.select(np.zeros(0, dtype=int)), imu_history=None)
     assert not OnlineEstimator().initialise(empty, _geometry(empty, PoseNoise(), rng)).ok
+
+
+def test_a_clip_whose_own_scale_disagrees_with_the_window_is_named_by_the_guard():
+    """``scale_agreement``: the clip's own 1 / scale against the window's (which holds the clip's evidence and more),
+    on the numbers of the real V2_03 clip that carried its window (own 1.55 +- 12 %, window 1.11 +- 2.9 %)."""
+    own = ScaleFit(lam=1 / 1.55, scale_rel_sigma=0.122, v1=np.zeros(3), v1_sigma=0.1, g_sigma=0.01, sigma_v=0.003,
+                   dof=14.0, variance_factor=1.0, converged=True)
+    z, p = scale_agreement(own, 1 / 1.113, 0.029)
+    assert z < -3 and p < 1e-3
+    z, p = scale_agreement(replace(own, lam=1 / 1.15), 1 / 1.113, 0.029)
+    assert abs(z) < 1 and p > 0.3
+    assert scale_agreement(own, 1 / 1.2, 0.2) == (0.0, 1.0)  # the window knows no more than the clip: no test

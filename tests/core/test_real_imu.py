@@ -92,3 +92,25 @@ def test_the_window_does_not_amplify_round_off(v102):
     assert [s for s, _ in runs[0]] == [s for s, _ in runs[1]]
     assert sum(s.value == "ok" for s, _ in runs[0]) >= 10
     assert all(abs(a / b - 1) < 0.01 for (_, a), (_, b) in zip(*runs) if np.isfinite(a) and np.isfinite(b))
+
+
+@pytest.mark.slow
+def test_aggressive_flight_claims_no_confident_wrong_scale(v203):
+    """Issue 37: on the real V2_03 flight at 3 mm / 0.1 deg (noise seed 0) the window claimed 1.11 and 1.13 at 2.9 and
+    3.4 % (35.0 and 39.9 s into the flight; 3.9 and 3.8 sigma): the clip at 35.0 s on its own said 1.55 +- 12 % and
+    carried the window, and the window took the gyro's integrated attitude between its clips as exact (it drifts
+    0.3-1.7 deg over 8 s of this flight's turns). The 30 s around them: none more than 10 % off, every claim within 3.5
+    sigma (39.9 s is the worst, 3.05 sigma: a systematic error of the real IMU there, docs/accuracy.md), and the clip
+    whose own scale disagrees with the window's is refused by the guard."""
+    t0 = float(v203.stamps[0])
+    claims, refused = [], []
+    for clip, _, truth, init in _chained(v203, PoseNoise(pos_m=0.003, rot_deg=0.1), seed=0, max_clips=65):
+        if clip.stamps[0] - t0 < 16.0:
+            continue
+        if init.ok:
+            claims.append((float(clip.stamps[0] - t0), init.scale / truth - 1.0, init.scale_sigma / init.scale))
+        elif "own scale is" in init.reason:
+            refused.append(float(clip.stamps[0] - t0))
+    assert len(claims) >= 25, claims
+    assert all(abs(e) < 0.1 and abs(e) < 3.5 * s for _, e, s in claims), [c for c in claims if abs(c[1]) > 3 * c[2]]
+    assert any(abs(t - 35.0) < 0.1 for t in refused), refused

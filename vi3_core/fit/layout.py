@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 SHARED: tuple[tuple[str, int], ...] = (("g", 2), ("ba", 3), ("bg", 3), ("td", 1))
-PER_CLIP: tuple[tuple[str, int], ...] = (("lam", 1), ("v", 3), ("c", 3))
+PER_CLIP: tuple[tuple[str, int], ...] = (("lam", 1), ("v", 3), ("c", 3), ("dphi", 3))
 PRIOR: tuple[tuple[str, int], ...] = (("g", 3), ("ba", 3), ("bg", 3), ("v", 3), ("lam", 1), ("td", 1))
 
 
@@ -95,6 +95,9 @@ class StateLayout:
     def c(self, k: int) -> slice:
         return self._in_clip("c", k)
 
+    def dphi(self, k: int) -> slice:
+        return self._in_clip("dphi", k)
+
     def _every(self, name: str) -> np.ndarray:
         part = _CLIP[name]
         return N_SHARED + N_CLIP * np.arange(self.K)[:, None] + np.arange(part.start, part.stop)[None, :]
@@ -110,6 +113,10 @@ class StateLayout:
     @property
     def cs(self) -> np.ndarray:
         return self._every("c")
+
+    @property
+    def dphis(self) -> np.ndarray:
+        return self._every("dphi")
 
     def prior_columns(self, k: int) -> np.ndarray:
         """The columns a prior written at clip k speaks about, in ``PriorLayout`` order (g's tangent for its 3)."""

@@ -25,6 +25,7 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     L = fit.layout
     y, A, rows, B = fit.linearise(result.state, result.sigma_v, priors)
     names = [f"vis {k}" for k in range(drop)] + [f"link {k}" for k in range(1, drop + 1)]
+    names += [f"dphi {k}" for k in range(drop)]
     names += [f"scale {k}" for k in range(1, drop + 1) if f"scale {k}" in rows]
     names += [f"prior {i}" for i in range(len(priors))]
     sel = np.concatenate([np.array(rows[name], dtype=int) for name in names])
@@ -51,7 +52,10 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     vf = math.sqrt(result.variance_factor)
     prior = GaussianPrior(PriorLayout.vector(s.g, s.ba, s.bg, s.v[drop], s.lam[drop], s.td), sqrt_H @ P / vf,
                           offset / vf)
-    prior = prior.widened(fit.noise.accel_bias_walk**2 * dt, fit.noise.gyro_bias_walk**2 * dt)
+    # the frame it is carried into is clip ``drop``'s, whose attitude error from B0 the new window takes as zero
+    turn = float(np.sum(fit.attitude_walk[1:drop + 1] ** 2))
+    prior = prior.widened(fit.noise.accel_bias_walk**2 * dt, fit.noise.gyro_bias_walk**2 * dt,
+                          fit.G**2 * turn, float(s.v[drop] @ s.v[drop]) * turn)
     phi = fit.pre.J.phi_bg[f]
     return prior.moved(so3.exp(phi @ (s.bg - fit.bg0)) @ fit.pre.R[f], phi)
 

@@ -43,7 +43,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from vi3_core import so3
-from vi3_core.fit.layout import N_CLIP, PriorLayout, StateLayout
+from vi3_core.fit.layout import PriorLayout, StateLayout
 from vi3_core.fit.linalg import Z975, inv, lstsq, t975, tangent_basis
 from vi3_core.fit.noise import ImuNoiseModel
 from vi3_core.fit.position import lever_arm_terms
@@ -82,11 +82,12 @@ class FitState:
     lam: np.ndarray
     v: np.ndarray
     c: np.ndarray
+    dphi: np.ndarray
     td: float = 0.0
 
     def copy(self) -> FitState:
-        return FitState(*(np.array(x, dtype=np.float64) for x in (self.g, self.ba, self.bg, self.lam, self.v, self.c)),
-                        float(self.td))
+        return FitState(*(np.array(x, dtype=np.float64)
+                          for x in (self.g, self.ba, self.bg, self.lam, self.v, self.c, self.dphi)), float(self.td))
 
 
 @dataclass
@@ -203,6 +204,8 @@ class MetricFit:
         f0, f1 = f[:-1], f[1:]
         dt = pre.tau[f1] - pre.tau[f0]
         angle = so3.angle(np.swapaxes(pre.R[f0], 1, 2) @ pre.R[f1]) if self.K > 1 else np.zeros(0)
+        # rad: the attitude's walk over each tie (``ImuNoiseModel.attitude_walk``); the first clip's frame is B0
+        self.attitude_walk = np.maximum(np.concatenate([[0.0], noise.attitude_walk(dt, angle)]), ATTITUDE_ANCHOR)
         self.links = _Links(dt=dt, dbeta=pre.beta[f1] - pre.beta[f0], J_ba=J.beta_ba[f1] - J.beta_ba[f0],
                             J_bg=J.beta_bg[f1] - J.beta_bg[f0],
                             sigma=np.array([noise.velocity_sigma(float(t), float(a), gravity_norm)
@@ -221,7 +224,7 @@ class MetricFit:
         GB = G * B
         dbg = s.bg - self.bg0
         lk = self.links
-        m = lk.row + 3 * (K - 1) + len(self.scale_links) + 7 + sum(prior.sqrt_info.shape[0] for prior in priors)
+        m = lk.row + 3 * (K - 1) + len(self.scale_links) + 7 + 3 * K + sum(p.sqrt_info.shape[0] for p in priors)
         y, A = np.empty(m), np.zeros((m, L.n))
         rows = {}
         own = StateLayout(1)  # a clip's Jacobian block: the shared unknowns, then its own
@@ -232,7 +235,9 @@ class MetricFit:
             RfT_J_bg = blk.RfT_J_bg + (d @ blk.RfT_hat_phi).reshape(n, 3, 3)
             # the body velocity at the frames (clip's first body frame): a time offset td shows the body td later
             vel = (s.v[k] + blk.dtau[:, None] * s.g + blk.dbeta) @ blk.R_f
-            body = d @ blk.R_f + RfT_J_bg @ dbg - blk.lever + s.td * vel
+            # the clip's attitude error dphi_k (B0) tilts the gravity it sees: R_f^T hat(g tau^2 / 2) dphi_k
+            RfT_hat_g = blk.R_f.T[None] @ so3.hat(blk.half_dtau2[:, None] * s.g)
+            body = d @ blk.R_f + RfT_J_bg @ dbg - blk.lever + s.td * vel + RfT_hat_g @ s.dphi[k]
             J = np.empty((n, 3, own.n))
             J[:, :, own.g] = ((lam * (blk.half_dtau2 + s.td * blk.dtau))[:, None, None] * (blk.R_f.T @ GB))
             J[:, :, own.ba] = lam * blk.RfT_J_ba
@@ -241,6 +246,7 @@ class MetricFit:
             J[:, :, own.lam(0)] = body
             J[:, :, own.v(0)] = lam * (blk.dtau_RfT + s.td * blk.R_f.T[None])
             J[:, :, own.c(0)] = _EYE3
+            J[:, :, own.dphi(0)] = lam * RfT_hat_g
             r0, r1 = blk.row, blk.row + 3 * n
             y[r0:r1] = (blk.imu_modes @ (lam * body + s.c[k] - blk.a)).reshape(-1)
             J = (blk.imu_modes @ J.reshape(n, -1)).reshape(3 * n, -1)
@@ -249,13 +255,17 @@ class MetricFit:
         r0 = lk.row
         if K > 1:  # the velocity ties, one [3]-row block each
             w = 1.0 / (lk.sigma * self.link_scale)
-            r = s.v[1:] - s.v[:-1] - lk.dt[:, None] * s.g - lk.dbeta - lk.J_ba @ s.ba - lk.J_bg @ dbg
+            # the tie's force integral turned by the attitude error of the clip it spans: + hat(dbeta) dphi_(k-1)
+            hat_dbeta = so3.hat(lk.dbeta)
+            r = s.v[1:] - s.v[:-1] - lk.dt[:, None] * s.g - lk.dbeta - lk.J_ba @ s.ba - lk.J_bg @ dbg \
+                + (hat_dbeta @ s.dphi[:-1, :, None])[:, :, 0]
             y[r0:r0 + 3 * (K - 1)] = (w[:, None] * r).reshape(-1)
             A_l = A[r0:r0 + 3 * (K - 1)].reshape(K - 1, 3, L.n)
             A_l[:, :, L.g] = -(w * lk.dt)[:, None, None] * GB
             A_l[:, :, L.ba], A_l[:, :, L.bg] = -w[:, None, None] * lk.J_ba, -w[:, None, None] * lk.J_bg
             for k in range(1, K):
                 A_l[k - 1, :, L.v(k)], A_l[k - 1, :, L.v(k - 1)] = w[k - 1] * _EYE3, -w[k - 1] * _EYE3
+                A_l[k - 1, :, L.dphi(k - 1)] = w[k - 1] * hat_dbeta[k - 1]
                 rows[f"link {k}"] = range(r0 + 3 * (k - 1), r0 + 3 * k)
             r0 += 3 * (K - 1)
         for k, log_ratio, sigma in self.scale_links:  # the scale chain through shared frames
@@ -270,6 +280,15 @@ class MetricFit:
         A[r0:r0 + 7] = self._bias_rows
         rows["bias"] = range(r0, r0 + 7)
         r0 += 7
+        # the attitude walks from the window's first frame: dphi_0 = 0, dphi_k - dphi_(k-1) ~ N(0, walk_k^2)
+        for k in range(K):
+            sd = self.attitude_walk[k]
+            y[r0:r0 + 3] = (s.dphi[k] - (s.dphi[k - 1] if k else 0.0)) / sd
+            A[r0:r0 + 3, L.dphi(k)] = _EYE3 / sd
+            if k:
+                A[r0:r0 + 3, L.dphi(k - 1)] = -_EYE3 / sd
+            rows[f"dphi {k}"] = range(r0, r0 + 3)
+            r0 += 3
         if priors:
             z = PriorLayout.vector(s.g, s.ba, s.bg, s.v[0], s.lam[0], s.td)
             Jz = L.prior_jacobian(0, GB)
@@ -320,7 +339,7 @@ class MetricFit:
         L = self.layout
         g = s.g - self.G * B @ dx[L.g]
         return FitState(self.G * g / math.hypot(*g), s.ba - dx[L.ba], s.bg - dx[L.bg], s.lam - dx[L.lams],
-                        s.v - dx[L.vs], s.c - dx[L.cs], s.td - float(dx[L.td]))
+                        s.v - dx[L.vs], s.c - dx[L.cs], s.dphi - dx[L.dphis], s.td - float(dx[L.td]))
 
     # ---- solution -----------------------------------------------------------------------------------------------
 
@@ -330,23 +349,23 @@ class MetricFit:
         ``lam`` [K] where it is given and finite)."""
         K = self.K
         s = FitState(self.G * np.asarray(g, np.float64) / np.linalg.norm(g), np.zeros(3), self.bg0.copy(),
-                     np.ones(K), np.zeros((K, 3)), np.zeros((K, 3)))
+                     np.ones(K), np.zeros((K, 3)), np.zeros((K, 3)), np.zeros((K, 3)))
         for k, blk in enumerate(self.blocks):
             n = len(blk.dtau)
-            X = np.empty((n, 3, N_CLIP))  # the clip's own columns, lam v solved for in place of v
-            X[:, :, _LAM] = (blk.half_dtau2[:, None] * s.g + blk.alpha) @ blk.R_f - blk.lever
-            X[:, :, _V] = blk.dtau_RfT
-            X[:, :, _C] = _EYE3
-            X, y = X.reshape(3 * n, N_CLIP), blk.a.reshape(-1)
+            X = np.empty((n, 3, 7))  # columns: lam, lam v (solved for in place of v), c
+            X[:, :, 0] = (blk.half_dtau2[:, None] * s.g + blk.alpha) @ blk.R_f - blk.lever
+            X[:, :, 1:4] = blk.dtau_RfT
+            X[:, :, 4:7] = _EYE3
+            X, y = X.reshape(3 * n, 7), blk.a.reshape(-1)
             if lam is not None and np.isfinite(lam[k]):
                 s.lam[k] = float(lam[k])
-                coef = np.empty(N_CLIP)
-                coef[_NOT_LAM] = lstsq(X[:, _NOT_LAM], y - s.lam[k] * X[:, _LAM])
+                coef = np.empty(7)
+                coef[1:] = lstsq(X[:, 1:], y - s.lam[k] * X[:, 0])
             else:
                 coef = lstsq(X, y)
-                s.lam[k] = coef[_LAM]
-            s.v[k] = blk.R_f @ coef[_V] / s.lam[k] if s.lam[k] != 0.0 else np.zeros(3)
-            s.c[k] = coef[_C]
+                s.lam[k] = coef[0]
+            s.v[k] = blk.R_f @ coef[1:4] / s.lam[k] if s.lam[k] != 0.0 else np.zeros(3)
+            s.c[k] = coef[4:7]
         return s
 
     def solve(self, state: FitState, *, priors: tuple[GaussianPrior, ...] = (), iterations: int = 8,
@@ -557,8 +576,7 @@ class _Links:
 
 
 _EYE3 = np.eye(3)
-_LAM, _V, _C = StateLayout.in_clip("lam").start, StateLayout.in_clip("v"), StateLayout.in_clip("c")
-_NOT_LAM = np.delete(np.arange(N_CLIP), _LAM)
+ATTITUDE_ANCHOR = 1e-6  # rad: the window's first frame is B0 itself (its attitude error is zero)
 _HAT_E = so3.hat(np.eye(3))  # [3,3,3]: hat of each axis
 
 

@@ -30,7 +30,7 @@ class ImuNoiseModel:
 
     accel_noise_density: float = 2.0e-2
     gyro_noise_density: float = 8.5e-4
-    gyro_scale_error: float = 0.02
+    gyro_scale_error: float = 0.005
     accel_bias_sigma: float = 0.2
     gyro_bias_sigma: float = 5.0e-4
     rel_floor: float = 0.01
@@ -53,6 +53,12 @@ class ImuNoiseModel:
         cov = self.accel_noise_density**2 * (ti * tj * m - 0.5 * (ti + tj) * m**2 + m**3 / 3.0)
         f = gravity_norm * self.gyro_scale_error * angle * dtau**2 / 6.0
         return cov + np.outer(f, f)
+
+    def attitude_walk(self, dt: np.ndarray, angle: np.ndarray) -> np.ndarray:
+        """[k] rad: the 1-sigma (per axis) of the error the IMU's integrated attitude gains over intervals of dt [k] s
+        in which the body turned ``angle`` [k] rad: the gyro's white noise and its ``gyro_scale_error`` of each radian
+        turned."""
+        return np.sqrt(self.gyro_noise_density**2 * dt + (self.gyro_scale_error * angle) ** 2)
 
     def velocity_sigma(self, dt: float, angle: float, gravity_norm: float) -> float:
         """1-sigma (m/s, per axis) of an IMU velocity change over dt s while turning ``angle`` rad."""

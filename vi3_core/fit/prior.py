@@ -41,9 +41,11 @@ class GaussianPrior:
         center[Z.g], center[Z.v] = R.T @ g, R.T @ v
         return GaussianPrior(center, self.sqrt_info @ np.linalg.inv(T), self.offset)
 
-    def widened(self, ba_var: float, bg_var: float) -> GaussianPrior:
+    def widened(self, ba_var: float, bg_var: float, g_var: float = 0.0, v_var: float = 0.0) -> GaussianPrior:
         """The prior with ``ba_var`` ((m/s^2)^2) and ``bg_var`` ((rad/s)^2) added to the biases' variance per axis
-        (their random walk over the time the prior is carried); its mean stays where it was.
+        (their random walk over the time the prior is carried), and ``g_var`` ((m/s^2)^2), ``v_var`` ((m/s)^2) to
+        gravity's and the velocity's (the attitude error of the frame it is carried into); its mean stays where it
+        was.
 
         In square-root information form, as a square-root information filter adds process noise Q: with
         A = S Q^1/2 and L L^T = I + A A^T, S' = L^-1 S, so that S'^T S' = S^T (I + A A^T)^-1 S = ((S^T S)^-1 + Q)^-1
@@ -52,6 +54,7 @@ class GaussianPrior:
         of a covariance with a 1e-18 negative eigenvalue gave an information of -1e18 and the window's fit failed."""
         q = np.zeros(PriorLayout.n)
         q[PriorLayout.ba], q[PriorLayout.bg] = ba_var, bg_var
+        q[PriorLayout.g], q[PriorLayout.v] = g_var, v_var
         A = self.sqrt_info * np.sqrt(q)
         L = np.linalg.cholesky(np.eye(len(A)) + A @ A.T)
         S = scipy.linalg.solve_triangular(L, self.sqrt_info, lower=True)

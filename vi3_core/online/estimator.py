@@ -4,9 +4,10 @@ on its own), and the chaining of the clips into one continuous odom trajectory (
 Per clip: (1) the clip's own GT-free initialisation runs as always (its data checks, its gyro bias, and its visual
 noise from its own fit); (2) its rotations are checked against the gyro with the stream's bias (a backbone failure
 is rejected before any scale); (3) the clip is fitted with the window (``window.Window``: the clips of the last
-``online_window`` seconds and the marginal prior of the ones before) and rejected, window unchanged, when its
-residual is inconsistent with the window (a chi-square test at ``online_consistency_p``); (4) its scale, gravity,
-velocity and biases come from that fit, and the scale is claimed only when its relative 1-sigma passes
+``online_window`` seconds and the marginal prior of the ones before) and rejected, window unchanged, when it is
+inconsistent with the window at ``online_consistency_p``: its residual (a chi-square test), or its own scale
+against the window's (``scale_agreement``: one clip whose own fit is off cannot carry the window); (4) its scale,
+gravity, velocity and biases come from that fit, and the scale is claimed only when its relative 1-sigma passes
 ``max_scale_sigma``. Clips join the window whatever their own sigma: evidence accumulates, so gentle motion earns its
 scale over time. A gap in the IMU (or a bridge longer than ``online_max_bridge``), an out-of-order clip, or
 ``online_max_rejects`` inconsistent clips in a row restart the window (the accelerometer bias survives as a prior,
@@ -40,7 +41,8 @@ class OnlineDecision:
     prior from earlier clips was used, rejected {name: reason} ("clip": the clip itself), reset reason ("" if none),
     ``own``: the clip's own GT-free initialisation (what the paper's per-clip pipeline with the error model would
     output; None before the clip was seen), whether the clip ``joined`` the window, the scale ``link`` to the clip
-    before it that the window fit used (None: none) and ``link_note``, what became of a link otherwise."""
+    before it that the window fit used (None: none) and ``link_note``, what became of a link otherwise; ``scale_p``:
+    the p-value of the clip's own scale against the window's (``scale_agreement``; NaN where it was not tested)."""
 
     window: int = 0
     span_s: float = 0.0
@@ -51,6 +53,7 @@ class OnlineDecision:
     joined: bool = False
     link: MeasuredLink | None = None
     link_note: str = ""
+    scale_p: float = float("nan")
 
     @property
     def earned(self) -> str:
@@ -64,10 +67,24 @@ class OnlineDecision:
             parts.append(f"scale: {self.earned}" + (f" ({self.link.describe()})" if self.link is not None else ""))
         if self.link_note:
             parts.append(f"link: {self.link_note}")
+        if math.isfinite(self.scale_p):
+            parts.append(f"own scale agrees: p = {self.scale_p:.2g}")
         parts += [f"{name} rejected: {why}" for name, why in sorted(self.rejected.items())]
         if self.reset:
             parts.append(f"reset: {self.reset}")
         return "; ".join(parts)
+
+
+def scale_agreement(own: ScaleFit, lam: float, rel_sigma: float) -> tuple[float, float]:
+    """Whether a clip's own scale (``own``: its fit alone) agrees with the window's (``lam`` = 1 / scale, relative
+    1-sigma ``rel_sigma``): z and the two-sided p-value of lam_own - lam_window, whose variance is the own estimate's
+    minus the window's (the window holds the clip's own evidence and more: a Hausman test). p = 1 where the window
+    knows the clip's scale no better than the clip alone."""
+    var = (own.scale_rel_sigma * own.lam) ** 2 - (rel_sigma * lam) ** 2
+    if not (own.lam > 0 and lam > 0 and np.isfinite(var) and var > 0):
+        return 0.0, 1.0
+    z = (own.lam - lam) / math.sqrt(var)
+    return z, float(math.erfc(abs(z) / math.sqrt(2.0)))
 
 
 SAME_SAMPLE_S = 1e-6  # s: IMU stamps closer than this are one sample
@@ -257,22 +274,26 @@ class OnlineEstimator:
         chi2 = float(res.chi2[k] + (res.link_chi2[k - 1] if k else 0.0))
         dof = float(res.dof[k] + (res.link_dof[k - 1] if k else 0.0))
         p = float(stats.chi2.sf(chi2, dof)) if (k or sol.priors) else 1.0
-        if p < o.online_consistency_p:
+        z, p_scale = scale_agreement(own, float(res.state.lam[k]), float(res.scale_rel_sigma[k]))
+        if min(p, p_scale) < o.online_consistency_p:
             self._rejects += 1
             why = (f"normalised residual {chi2 / dof:.2f} over {dof:.1f} degrees of freedom (p = {p:.1e} < "
-                   f"{o.online_consistency_p:g}) in a window of {k + 1} clips")
+                   f"{o.online_consistency_p:g}) in a window of {k + 1} clips") if p < o.online_consistency_p else \
+                (f"its own scale is {abs(z):.1f} sigma from the window's (p = {p_scale:.1e} < "
+                 f"{o.online_consistency_p:g}) in a window of {k + 1} clips")
             # A window that has not claimed a scale yet has nothing to defend: the clip that disagrees with it
             # starts a new one (after a hover or a stretch of bad data the new clip is as likely to be right).
             if self._rejects < o.online_max_rejects and self._window_claimed:
                 return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {why}",
                                                bg=bg, fit=own, diagnostics=dict(free.diagnostics)),
-                                    replace(decision, rejected={"clip": why}), free)
+                                    replace(decision, rejected={"clip": why}, scale_p=p_scale), free)
             reset = (f"{self._rejects} clips in a row inconsistent with the window" if self._window_claimed
                      else f"inconsistent with a window that claimed no scale yet ({why})")
             self.window.restart()
             self._window_claimed = False
             sol = self.window.solve(member, self._imu, bg, bg_sigma, clip.T_BC)
             k, res = 0, sol.result
+            z, p_scale = scale_agreement(own, float(res.state.lam[k]), float(res.scale_rel_sigma[k]))
         self._rejects = 0
         self.window.commit(sol)
         if self.options.shared_frames:
@@ -281,7 +302,7 @@ class OnlineEstimator:
             measured, link_note = None, "not used: the window restarted"
         span = members_span(sol.members)
         decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset, joined=True,
-                                  link=measured, link_note=link_note)
+                                  link=measured, link_note=link_note, scale_p=p_scale)
         g_k, v_k = sol.frame_state(k)
         s, rel = float(res.scale[k]), float(res.scale_rel_sigma[k])
         g_sigma, v_sigma = res.state_sigma(k)

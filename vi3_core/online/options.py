@@ -20,8 +20,8 @@ class OnlineOptions:
     online_max_bridge_sigma: m; a clip placed in odom through a bridge whose position 1-sigma exceeds this starts a new
         segment of the odom trajectory (the placement is the IMU's best guess, but not continuous in any useful sense);
     online_consistency_p: a clip whose whitened residual in the window (its positions and its velocity tie) has a
-        chi-square tail probability below this is inconsistent with the window: rejected and named, the window
-        unchanged;
+        chi-square tail probability below this, or whose own scale disagrees with the window's at this level
+        (``estimator.scale_agreement``), is inconsistent with the window: rejected and named, the window unchanged;
     online_max_rejects: that many inconsistent clips in a row restart the window from the current clip;
     online_bg_window: s; the gyro-bias prior is the median of the clips' own (rotation-based) estimates of this long;
     shared_frames: each clip starts with the last this many frames of the clip before it that joined the window, so
