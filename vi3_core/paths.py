@@ -51,6 +51,25 @@ def check_apart(output: str | Path, inputs: Iterable[str | Path], *, what: str,
                             "output outside the inputs")
 
 
+def check_output_file(output: str, inputs: Iterable[str | Path], *, what: str, kind: str, force: bool,
+                      empty_hint: str = "") -> Path:
+    """The file ``output`` a command is about to write, checked as every such output is: DataError (``what``: the
+    option as messages name it, e.g. "vi3 calib --output"; ``kind``: what it holds, e.g. "a YAML file";
+    ``empty_hint``: added to the empty name's message) for an empty name, an input it would destroy
+    (``check_apart``), a folder, an existing file without ``force``, or a folder that does not exist."""
+    if not output.strip():
+        raise DataError(f"{what} {output!r}: an empty name; name {kind}{empty_hint}")
+    out = Path(output)
+    check_apart(out, inputs, what=what)
+    if out.is_dir():
+        raise DataError(f"{what} {out}: is a folder; name {kind}")
+    if out.exists() and not force:
+        raise DataError(f"{what} {out}: exists; pass --force to replace it")
+    if not out.parent.is_dir():
+        raise DataError(f"{what} {out}: its folder does not exist")
+    return out
+
+
 def _real(path: str | Path) -> Path:
     """``path`` absolute with every symbolic link resolved as far as they lead (a loop or a missing target stops
     there, without an error)."""

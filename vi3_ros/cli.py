@@ -9,7 +9,7 @@ import sys
 
 from vi3_ros import interrupts
 
-SUBCOMMANDS = ("bench", "demo", "replay", "eval", "calib", "make_bag")
+SUBCOMMANDS = ("bench", "demo", "replay", "eval", "calib", "reference", "make_bag")
 
 
 def build_parser() -> argparse.ArgumentParser:

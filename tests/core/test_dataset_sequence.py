@@ -52,6 +52,11 @@ def test_real_fixture_reads(euroc_fixture):
     assert clip.gt is None and clip.images.shape == (1, 480, 752)
     with pytest.raises(DataError, match="does not cover the clip"):
         make_clip(seq, np.arange(2))
+    part = seq.within(seq.stamps[1], seq.stamps[3])  # the span a reference covers
+    assert len(part) == 3 and part.stamps_ns[0] == seq.stamps_ns[1] and len(part.imu) == 5
+    assert np.array_equal(part.image(2), seq.image(3)) and not np.array_equal(part.image(0), seq.image(0))
+    with pytest.raises(DataError, match="no frame of"):
+        seq.within(0.0, 1.0)
 
 
 def _copy(src, dst):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -143,6 +144,19 @@ def test_claimed_outliers_count_only_ok_clips_beside_the_medians() -> None:
     s = report.summarise(evals, mode="init")
     assert s["claimed_outliers"] == {"count": 2, "claimed": 4, "share": 0.5}
     assert "more than 10 % off: 2 of 4 (50.0 %)" in report.format_tables(s)
+
+
+def test_a_backbone_that_knows_its_scale_is_scored_by_it_not_by_noisy_positions() -> None:
+    """The gt instrument knows the metres per model unit it predicted at: a claim whose positions read 15 % off
+    (pose noise on a clip that barely moves) but whose scale is exact is no outlier, and the other way round."""
+    exact = replace(make_clip_eval(1, vi3_scale=1.15, sigma=0.02), exact_scale=1.15 / 0.4)  # init.scale = 1.15/0.4
+    wrong = replace(make_clip_eval(2, vi3_scale=1.0, sigma=0.02), exact_scale=1.0 / 0.4 / 1.2)
+    s = report.summarise([exact, wrong], mode="init")
+    assert [c["scale_fit"] for c in s["clips"]] == pytest.approx([1.15, 1.0])
+    assert [c["scale_exact"] for c in s["clips"]] == pytest.approx([1.0, 1.2])
+    assert s["claimed_outliers"] == {"count": 1, "claimed": 2, "share": 0.5}
+    assert s["sigma_calibration"]["within_1sigma"] == pytest.approx(0.5)
+    assert report.summarise([make_clip_eval(3)], mode="init")["clips"][0]["scale_exact"] is None
 
 
 def test_sigma_calibration_shares_and_no_sigma() -> None:

@@ -200,3 +200,19 @@ def test_a_clip_whose_own_scale_disagrees_with_the_window_is_named_by_the_guard(
     z, p = scale_agreement(replace(own, lam=1 / 1.15), 1 / 1.113, 0.029)
     assert abs(z) < 1 and p > 0.3
     assert scale_agreement(own, 1 / 1.2, 0.2) == (0.0, 1.0)  # the window knows no more than the clip: no test
+
+
+@pytest.mark.slow
+def test_a_clip_whose_own_scale_is_negative_still_brings_its_evidence(seq):
+    """Issue 36: only the claim is gated, never the evidence. At 1 cm of pose noise some clips' own fits come out
+    with a negative scale; they join the window (their IMU and visual constraints count, the window grows by
+    them) instead of being dropped with "its own poses carry no scale", and nothing claimed is off."""
+    est, online, own, decisions = _run(seq, noise=PoseNoise(pos_m=0.01, rot_deg=0.1))
+    negative = [k for k, o in enumerate(own) if "not positive" in o.reason]
+    assert negative
+    for k in negative:
+        assert "carry no scale" not in decisions[k] and "scale: window" in decisions[k], decisions[k]
+        assert int(re.match(r"window (\d+) clips", decisions[k]).group(1)) > int(
+            re.match(r"window (\d+) clips", decisions[k - 1]).group(1)), (decisions[k - 1], decisions[k])
+    n, err, rel = _claims(online)
+    assert np.all(err <= 3 * rel)

@@ -58,8 +58,11 @@ def test_thrust_attitude_has_exact_derivatives_and_follows_the_acceleration():
         # Specific force against the body x axis (EuRoC: x up, the thrust axis of a level multirotor).
         f_B = np.einsum("nji,nj->ni", traj.rotation(t), traj.acceleration_W(t) + [0.0, 0.0, 9.81])
         angle = np.degrees(np.arccos(f_B[:, 0] / np.linalg.norm(f_B, axis=1)))
+        tilt = np.degrees(np.arccos(np.clip(traj.rotation(t)[:, 2, 0], -1.0, 1.0)))  # body x against world up
         if motion == "agile":  # the earlier generator: attitude independent of the acceleration
             assert np.median(angle) > 2.0
+        elif motion == "handheld":  # held level by hand, not tilted along the acceleration
+            assert tilt.max() < 3 * PRESETS[motion].wobble_deg and np.median(angle) > 1.0
         else:  # thrust-aligned up to the wobble
             assert angle.max() < 1.0 and np.median(angle) < 0.6
 

@@ -252,7 +252,9 @@ def test_sigterm_at_any_moment_ends_143_with_what_was_kept_and_no_hidden_folder(
     work folder, no traceback, and stderr says what is on disk, which is exactly what is there."""
     if not Path(f"/proc/{os.getpid()}/maps").exists():
         pytest.skip("needs /proc to see when the process loads torch")
-    asl, src = _converted_bag(cache_dir, seconds=4.0, seed=0)
+    # 10 s (14 clips, as test_online's sequence): the 4 s bag of before ended within the second after its work folder
+    # appeared once each frame was tracked only once
+    asl, src = _converted_bag(cache_dir, seconds=10.0, seed=0)
     out, partial = tmp_path / "out.mcap", tmp_path / "out.partial.mcap"
     proc = _subprocess_replay([src, "--output", out, "--calib", _calib_file(tmp_path)])
     ready = {"loading": lambda: _loading_torch(proc), "replaying": lambda: _leftovers(tmp_path),

@@ -125,14 +125,23 @@ class Backbone(abc.ABC):
         """The torch modules holding all parameters (put in eval mode; frozen except TTR groups)."""
         return []
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
         """Called with each ``vi3_core.types.Clip`` just before it is predicted (``StreamEstimator``, with the
         configured calibration), for that prediction only. ``depth_frames``: the indices of the frames whose depth the
         caller reads (None: every frame); a backbone whose depth costs per frame may predict only those, the others
         NaN with zero confidence. Nothing for a model, which sees only its images and predicts every frame's depth in
         one pass; the evaluation's ground-truth instrument predicts from the clip's ground truth, and the
-        ``classical`` backbone sweeps depth for ``depth_frames`` only."""
+        ``classical`` backbone sweeps depth for ``depth_frames`` only. ``continued``: False when the clip must stand on
+        its own (the independent evaluation, whose clips may run in any order or on other machines): nothing the
+        backbone kept of earlier clips (the ``classical`` front end's tracks) may shape its prediction."""
         return
+
+    @property
+    def exact_scale(self) -> float | None:
+        """Metres per model unit of the last prediction where the backbone knows it exactly (the evaluation's
+        ground-truth instrument), else None. The evaluation scores a claimed scale against it: a fit of positions
+        would take the instrument's pose noise for scale error on a clip that barely moves."""
+        return None
 
     def diagnostics(self) -> dict:
         """What the backbone reports about the last clip it preprocessed, as JSON-serialisable name -> value: keys

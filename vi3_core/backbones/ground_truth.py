@@ -40,7 +40,11 @@ class GroundTruthPoses(Backbone):
         self._clip: Clip | None = None
         self.last_scale = float("nan")  # metres per model unit of the last prediction (the truth a scale estimates)
 
-    def bind(self, clip: Clip, *, depth_frames: np.ndarray | None = None) -> None:
+    @property
+    def exact_scale(self) -> float | None:
+        return None if np.isnan(self.last_scale) else self.last_scale
+
+    def bind(self, clip: Clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
         """The clip whose ground truth the next prediction uses (the stream binds each clip as it processes it, with
         the configured calibration); its depth is that of every frame whatever ``depth_frames`` says."""
         if clip.gt is None:

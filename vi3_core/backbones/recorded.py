@@ -45,9 +45,9 @@ class RecordingBackbone(Backbone):
         self.patch_size, self.needs_images = inner.patch_size, inner.needs_images
         self._key: tuple | None = None
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
         self._key = clip_key(clip)
-        self.inner.bind(clip, depth_frames=depth_frames)
+        self.inner.bind(clip, depth_frames=depth_frames, continued=continued)
 
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> BackboneInputs:
         return self.inner.preprocess(images, K)
@@ -79,7 +79,7 @@ class RecordedBackbone(Backbone):
         self.recording, self.name = recording, name
         self._key: tuple | None = None
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
         self._key = clip_key(clip)
 
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> BackboneInputs:

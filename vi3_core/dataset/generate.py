@@ -43,14 +43,30 @@ from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.errors import DataError
 from vi3_core.render.raycast import Renderer
 from vi3_core.render.scene import SCENES, Scene, make_scene
+from vi3_core.render.sensor import REALSENSE, Exposure, SensorModel, blur, finish, row_times
 from vi3_core.sim import euroc
-from vi3_core.sim.imu import ImuNoise, ImuSimulator, default_vibration, draw_accel_bias
+from vi3_core.sim.imu import REALSENSE_NOISE, ImuNoise, ImuSimulator, default_vibration, draw_accel_bias
 from vi3_core.sim.trajectory import MOTIONS, make_trajectory
 from vi3_core.types import Clip, ImuSamples
 
 #: EuRoC cam0 (MH_01 ``cam0/sensor.yaml``): intrinsics, radial-tangential distortion, T_BS, 752x480 @ 20 Hz.
 EUROC_CAM0 = CameraCalib(K=euroc.K_cam0(), dist_model="radtan", dist=np.array(euroc.DISTORTION_CAM0),
                          size=euroc.RESOLUTION_CAM0, T_BC=euroc.T_BS_CAM0.copy(), rate_hz=euroc.CAMERA_RATE_HZ)
+#: A RealSense colour stream at 1280x720 (the DM-VIO dataset's published pinhole intrinsics, no distortion), its IMU
+#: a centimetre from the lens, mounted as EuRoC's cam0 is (the simulator's body axes).
+_RS_T_BC = euroc.T_BS_CAM0.copy()
+_RS_T_BC[:3, 3] = (-0.012, 0.002, 0.002)
+REALSENSE_CAM = CameraCalib(K=np.array([[906.2598, 0.0, 642.8964], [0.0, 906.5510, 353.1422], [0.0, 0.0, 1.0]]),
+                            dist_model="none", dist=np.zeros(0), size=(1280, 720), T_BC=_RS_T_BC, rate_hz=None)
+#: camera models of ``SequenceSpec.camera``: EuRoC's global-shutter cam0 rendered ideally, or a RealSense with what
+#: its sensor does (``vi3_core.render.sensor.REALSENSE``)
+CAMERAS = ("euroc", "realsense")
+#: The RealSense's IMU: its gyro and accelerometer streams merged by the driver (a base stream at 200.9 Hz, the other
+#: stream's stamps inserted every ~9 samples at a drifting phase, values interpolated: 5 % of its intervals under
+#: 1.5 ms, the shortest under a microsecond), its stamps this far behind the frames' (``vi3 calib`` on the recording:
+#: -53 ms).
+RS_IMU_PERIOD_NS, RS_MERGE_EVERY, RS_MERGE_DRIFT_NS = 4_977_000, 9, 236_000
+RS_IMU_DELAY_NS = -53_000_000
 
 T0_NS = 1_700_000_000_000_000_000  # first camera stamp (ns): EuRoC-like epoch stamps
 CAM_PERIOD_NS = 50_000_000  # 20 Hz
@@ -75,8 +91,11 @@ class SequenceSpec:
     ``MOTIONS``; accel_bias: an initial accelerometer bias of EuRoC's size (else zero); imu_noise: EuRoC noise,
     bias random walks and airframe vibration (else noise-free IMU with constant biases); with_depth: GT depth maps;
     from_euroc: a real EuRoC ``mav0`` folder to follow (motion, accel_bias and imu_noise then do not apply);
-    start_s: with ``from_euroc``, where the camera stream starts, seconds into the span IMU and GT both cover.
-    Raises DataError on a value that cannot make a sequence."""
+    start_s: with ``from_euroc``, where the camera stream starts, seconds into the span IMU and GT both cover; camera:
+    one of ``CAMERAS`` (generated sequences: ``realsense`` renders 1280x720 with a rolling shutter, motion blur, auto
+    exposure and the frame rates it sets, lost frames and stalls, vignetting, noise and JPEG, and writes the RealSense's
+    IMU: its noise, merged streams and a clock 53 ms off the frames'; the calibration written is the published one,
+    which does not know that offset). Raises DataError on a value that cannot make a sequence."""
 
     seconds: float | None = 4.0
     seed: int = 0
@@ -87,6 +106,7 @@ class SequenceSpec:
     with_depth: bool = True
     from_euroc: str | None = None
     start_s: float = 0.0
+    camera: str = "euroc"
 
     def __post_init__(self) -> None:
         if self.seconds is None:
@@ -106,6 +126,10 @@ class SequenceSpec:
             raise DataError(f"start must be a finite number of seconds >= 0, got {self.start_s!r}")
         if self.start_s and self.from_euroc is None:
             raise DataError("start applies to sequences rendered along a recording (from_euroc)")
+        if self.camera not in CAMERAS:
+            raise DataError(f"unknown camera {self.camera!r}; choose one of {list(CAMERAS)}")
+        if self.camera != "euroc" and self.from_euroc is not None:
+            raise DataError("a camera model other than euroc is for generated sequences (a recording keeps its own)")
 
 
 @dataclass(frozen=True)
@@ -113,7 +137,8 @@ class Block:
     """The streams of one block of time, each in stamp order: frames ``cam_ns`` [n] int64 at camera poses ``T_WC``
     [n,4,4] with their raw mono8 ``images`` ([H,W] uint8 each; empty until rendered), IMU ``imu_ns`` [m] with
     ``imu``, ground truth ``gt_ns`` [k] with body poses ``T_WB`` [k,4,4] in W, ``v_WB`` [k,3], biases ``bg``,
-    ``ba`` [k,3]."""
+    ``ba`` [k,3]; ``exposure`` [n, 2]: each frame's exposure (the share of the sensor's longest) and gain (None: an
+    ideal camera)."""
 
     cam_ns: np.ndarray
     T_WC: np.ndarray
@@ -125,6 +150,7 @@ class Block:
     bg: np.ndarray
     ba: np.ndarray
     images: tuple[np.ndarray, ...] = ()
+    exposure: np.ndarray | None = None
 
 
 def euroc_mav0(path) -> Path:
@@ -151,37 +177,115 @@ class Written:
     gt_gaps: np.ndarray
 
 
-class _Generated:
+class _Source:
+    """What ``write_sequence`` renders along: ``renderer`` (set there) renders each frame ideally."""
+
+    renderer: Renderer | None = None
+
+    def render(self, ns: int, T_WC: np.ndarray, exposure: np.ndarray | None,
+               with_depth: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The frame at ``ns`` from camera pose ``T_WC`` [4,4] and its z-depth (``Renderer.render``)."""
+        return self.renderer.render(T_WC, with_depth=with_depth)
+
+
+class _Generated(_Source):
     """A generated flight (see the module docstring); ``block`` must be called on consecutive blocks."""
 
     gt_gaps = np.zeros((0, 2), dtype=np.int64)  # its GT is on the IMU's grid: no gaps
 
     def __init__(self, spec: SequenceSpec, world: Scene) -> None:
-        self.calib = EUROC_CAM0
+        realsense = spec.camera == "realsense"
+        self.calib = REALSENSE_CAM if realsense else EUROC_CAM0
+        self.sensor = REALSENSE if realsense else None
         self.traj = make_trajectory("drone", spec.seed, motion=spec.motion, center=tuple(world.center),
                                     extent=tuple(world.extent))
-        n_frames = int(round(spec.seconds * 1e9 / CAM_PERIOD_NS)) + 1
-        self.last_frame_ns = T0_NS + (n_frames - 1) * CAM_PERIOD_NS
+        if realsense:
+            self.cam_ns, self.exposure = _realsense_frames(REALSENSE, spec.seconds, spec.seed)
+        else:
+            n_frames = int(round(spec.seconds * 1e9 / CAM_PERIOD_NS)) + 1
+            self.cam_ns, self.exposure = T0_NS + np.arange(n_frames, dtype=np.int64) * CAM_PERIOD_NS, None
+        self.last_frame_ns = int(self.cam_ns[-1])
         self.first_ns, self.last_ns = T0_NS - IMU_MARGIN_NS, self.last_frame_ns + IMU_MARGIN_NS
+        self.imu_period_ns = RS_IMU_PERIOD_NS if realsense else IMU_PERIOD_NS
+        self.imu_delay_ns = RS_IMU_DELAY_NS if realsense else 0
         rng = np.random.default_rng([spec.seed, 3])
         bg0 = rng.uniform(-0.03, 0.03, size=3)  # rad/s, EuRoC-sized initial gyro bias
         ba0 = draw_accel_bias(rng) if spec.accel_bias else np.zeros(3)
-        self.noise = ImuNoise() if spec.imu_noise else ImuNoise.zero()
-        self.imu = ImuSimulator(self.traj, dt=IMU_PERIOD_NS * 1e-9, noise=self.noise, bg0=bg0, ba0=ba0,
+        self.noise = (REALSENSE_NOISE if realsense else ImuNoise()) if spec.imu_noise else ImuNoise.zero()
+        self.imu = ImuSimulator(self.traj, dt=self.imu_period_ns * 1e-9, noise=self.noise, bg0=bg0, ba0=ba0,
                                 seed=spec.seed, vibration=default_vibration(spec.motion, spec.imu_noise))
+        self.seed = spec.seed
 
     def _t(self, ns: np.ndarray) -> np.ndarray:
         """The trajectory's clock: seconds since the first IMU sample (exact on the ns grid)."""
         return (ns - self.first_ns) * 1e-9
 
     def block(self, ns0: int, ns1: int) -> Block:
-        imu_ns = np.arange(max(ns0, self.first_ns), min(ns1, self.last_ns + 1), IMU_PERIOD_NS, dtype=np.int64)
-        cam_ns = np.arange(max(ns0 + (T0_NS - ns0) % CAM_PERIOD_NS, T0_NS), min(ns1, self.last_frame_ns + 1),
-                           CAM_PERIOD_NS, dtype=np.int64)
+        p = self.imu_period_ns
+        first = self.first_ns + -(-(max(ns0, self.first_ns) - self.first_ns) // p) * p  # on the IMU's own grid
+        imu_ns = np.arange(first, min(ns1, self.last_ns + 1), p, dtype=np.int64)
+        cam = (self.cam_ns >= ns0) & (self.cam_ns < ns1)
+        cam_ns = self.cam_ns[cam]
         sim = self.imu(self._t(imu_ns))
-        return Block(cam_ns, self.traj.T_WB(self._t(cam_ns)) @ self.calib.T_BC, imu_ns,
-                     ImuSamples(imu_ns * 1e-9, sim.samples.gyro, sim.samples.accel, t_ns=imu_ns), imu_ns,
-                     self.traj.T_WB(self._t(imu_ns)), self.traj.velocity_W(self._t(imu_ns)), sim.bg, sim.ba)
+        gyro, accel, stamps = sim.samples.gyro, sim.samples.accel, imu_ns
+        if self.sensor is not None:  # the driver's merged streams, on the IMU's own clock
+            stamps, gyro, accel = _merged(imu_ns, gyro, accel)
+        written = stamps + self.imu_delay_ns
+        return Block(cam_ns, self.traj.T_WB(self._t(cam_ns)) @ self.calib.T_BC, written,
+                     ImuSamples(written * 1e-9, gyro, accel, t_ns=written), imu_ns,
+                     self.traj.T_WB(self._t(imu_ns)), self.traj.velocity_W(self._t(imu_ns)), sim.bg, sim.ba,
+                     exposure=None if self.exposure is None else self.exposure[cam])
+
+    def render(self, ns: int, T_WC: np.ndarray, exposure: np.ndarray | None,
+               with_depth: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The stored frame at ``ns`` (camera pose ``T_WC`` at its middle row) and its z-depth: ideal, or through
+        the sensor (each row at its own time, the exposure integrated, then ``render.sensor.finish``)."""
+        if self.sensor is None:
+            return super().render(ns, T_WC, exposure, with_depth)
+        m = self.sensor
+        H = self.calib.size[1]
+        t_rows = row_times(self._t(np.array([ns]))[0], H, m.readout_s)
+        rows = self.traj.T_WB(t_rows) @ self.calib.T_BC
+        radiance, depth = self.renderer.radiance(rows)
+        radiance = blur(radiance, depth, self.calib.K, rows, lambda t: self.traj.T_WB(t) @ self.calib.T_BC,
+                        t_rows, exposure[0] * m.exposure_s, m.blur_samples)
+        rng = np.random.default_rng([self.seed, int(ns % 2**62), 41])  # the frame's own noise, whatever the thread
+        image = finish(radiance * np.float32(exposure[0]), float(exposure[1]), m, rng)
+        depth = np.where(np.isfinite(depth), depth, np.nan).astype(np.float32) if with_depth else None
+        return image, depth
+
+
+def _realsense_frames(sensor: SensorModel, seconds: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The frame stamps [n] int64 ns of ``seconds`` of a camera whose auto exposure sets its rate (``Exposure``), with
+    frames lost at random and stalls (``sensor.drop_rate``, ``gap_rate``), and each frame's (exposure, gain) [n,2]."""
+    ae, rng = Exposure(sensor, seed), np.random.default_rng([seed, 13])
+    t, stamps, exposure = 0.0, [], []
+    interval = sensor.frame_intervals_s[0]
+    while t <= seconds:
+        interval, e, g = ae.next(sensor.target_grey, interval)
+        if rng.random() < sensor.gap_rate * interval:
+            t += rng.uniform(*sensor.gap_s)  # a stall: no frame
+        elif rng.random() >= sensor.drop_rate:
+            stamps.append(t)
+            exposure.append((e, g))
+        t += interval
+    return T0_NS + np.round(np.array(stamps) * 1e9).astype(np.int64), np.array(exposure)
+
+
+def _merged(base_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An IMU stream as a RealSense driver merges its gyro and accelerometer: the base stream ``base_ns`` [m] with a
+    sample of the other inserted every ``RS_MERGE_EVERY`` samples at a phase drifting by ``RS_MERGE_DRIFT_NS`` (its
+    values interpolated between the base's, as the driver's linear interpolation gives them)."""
+    k = np.arange(RS_MERGE_EVERY - 1, len(base_ns) - 1, RS_MERGE_EVERY)
+    step = base_ns[k + 1] - base_ns[k]
+    phase = ((base_ns[k] - base_ns[0]) // RS_MERGE_EVERY * RS_MERGE_DRIFT_NS // RS_IMU_PERIOD_NS) % step
+    extra = base_ns[k] + np.clip(phase, 700, step - 700)  # never on a base stamp (700 ns: the recording's shortest)
+    u = ((extra - base_ns[k]) / (base_ns[k + 1] - base_ns[k]))[:, None]
+    stamps = np.concatenate([base_ns, extra])
+    order = np.argsort(stamps, kind="stable")
+    g = np.concatenate([gyro, (1 - u) * gyro[k] + u * gyro[k + 1]])
+    a = np.concatenate([accel, (1 - u) * accel[k] + u * accel[k + 1]])
+    return stamps[order], g[order], a[order]
 
 
 def frame_grid(imu_ns: np.ndarray, lo: int, hi: int, period_ns: int) -> np.ndarray:
@@ -230,7 +334,7 @@ def euroc_frames(imu_ns: np.ndarray, gt_ns: np.ndarray, period_ns: int, *, start
     return frames, gaps
 
 
-class _Euroc:
+class _Euroc(_Source):
     """A real EuRoC recording to render along (see the module docstring)."""
 
     def __init__(self, spec: SequenceSpec) -> None:
@@ -299,10 +403,10 @@ def write_sequence(mav0, spec: SequenceSpec, *, workers: int = 2,
                 shutil.copyfile(source.src / rel, mav0 / rel)
     if spec.with_depth:
         asl.write_depth_yaml(mav0, source.calib.undistorter().K)
-    renderer = Renderer(world, source.calib)
+    source.renderer = Renderer(world, source.calib)
 
-    def render(ns: int, T_WC: np.ndarray) -> np.ndarray:
-        image, depth = renderer.render(T_WC, with_depth=spec.with_depth)
+    def render(ns: int, T_WC: np.ndarray, exposure: np.ndarray | None) -> np.ndarray:
+        image, depth = source.render(ns, T_WC, exposure, spec.with_depth)
         asl.write_image(writer.image_dir, ns, image)
         if writer.depth_dir is not None:
             asl.write_depth(writer.depth_dir, ns, depth)
@@ -321,7 +425,8 @@ def write_sequence(mav0, spec: SequenceSpec, *, workers: int = 2,
         pending = None  # the block being rendered while the next one is submitted
         for ns0 in range(source.first_ns, source.last_ns + 1, BLOCK_NS):
             rows = source.block(ns0, ns0 + BLOCK_NS)
-            frames = [pool.submit(render, ns, T) for ns, T in zip(rows.cam_ns.tolist(), rows.T_WC)]
+            exposure = rows.exposure if rows.exposure is not None else [None] * len(rows.cam_ns)
+            frames = [pool.submit(render, ns, T, e) for ns, T, e in zip(rows.cam_ns.tolist(), rows.T_WC, exposure)]
             if pending is not None:
                 finish(*pending)
             pending = (rows, frames)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -102,6 +102,18 @@ class Sequence:
     def image(self, i: int) -> np.ndarray:
         """Raw (distorted, as recorded) uint8 [H,W] mono8 image of frame i."""
         return self.load_image(int(i))
+
+    def within(self, t0: float, t1: float) -> Sequence:
+        """The frames stamped within [t0, t1] s (the IMU whole, for the clips' history), e.g. the span a reference
+        trajectory covers. DataError when none is."""
+        keep = np.flatnonzero((self.stamps >= t0) & (self.stamps <= t1))
+        if len(keep) == 0:
+            raise DataError(f"no frame of {self.name!r} lies within [{t0:.3f}, {t1:.3f}] s")
+        i0, load_depth = int(keep[0]), self.load_depth
+        return replace(self, stamps=self.stamps[keep],
+                       stamps_ns=None if self.stamps_ns is None else self.stamps_ns[keep],
+                       load_image=lambda i: self.load_image(i + i0),
+                       load_depth=None if load_depth is None else (lambda i: load_depth(i + i0)))
 
     def gt_depth(self, i: int) -> np.ndarray | None:
         """[H,W] float32 z-depth (m) of the UNDISTORTED image of frame i, NaN where invalid; None if unknown.

@@ -3,9 +3,11 @@ off (a confident wrong scale, the number a user of a metric node cares about mos
 scale sigma (``InitResult.scale_sigma``) predicts its error.
 
 A clip's error is |Scale (fit) - 1| (the least-squares ratio of its metric to the true camera positions,
-``metrics.scale_fit``: it weighs long baselines, so pose noise does not pass for scale error; clips without one, e.g.
-stationary ones, are not scored) and its relative sigma ``scale_sigma / scale``; a calibrated sigma has about 68 % /
-95 % of the errors within 1 / 2 sigma (Gaussian errors).
+``metrics.scale_fit``: it weighs long baselines, so pose noise passes for little scale error where the clip moves;
+clips without one, e.g. stationary ones, are not scored) and its relative sigma ``scale_sigma / scale``; a calibrated
+sigma has about 68 % / 95 % of the errors within 1 / 2 sigma (Gaussian errors). The ground-truth instrument's clips
+are scored against the scale it predicted at, which it knows exactly (``ClipEval.exact_scale``): on a clip that
+moves a centimetre its pose noise would otherwise read as a scale error of tens of per cent.
 """
 
 from __future__ import annotations
@@ -69,8 +71,13 @@ def rel_sigma(e: ClipEval) -> float:
 
 
 def scale_error(e: ClipEval, column: str) -> float:
-    """|Scale (fit) - 1| of the clip's ``column`` (NaN when it has none)."""
-    return abs(e.columns[column].scale_fit - 1.0) if column in e.columns else float("nan")
+    """|Scale (fit) - 1| of the clip's ``column`` (NaN when it has none); for a claimed clip of a backbone that knew
+    its prediction's scale exactly (``ClipEval.exact_scale``), the claimed scale's own error |scale / exact - 1|."""
+    if column not in e.columns:
+        return float("nan")
+    if e.ok and e.exact_scale is not None and column == e.mode:
+        return abs(e.init.scale / e.exact_scale - 1.0)
+    return abs(e.columns[column].scale_fit - 1.0)
 
 
 def clip_claims(evals: Sequence[ClipEval], column: str) -> Claims:

@@ -23,7 +23,9 @@ class ClipEval:
     before the backbone); fast: the fast init ``AnchorResult`` when mode is "cond"/"ttr"; columns:
     ``GeometryMetrics`` per column ("base", "init", and "cond"/"ttr" when run); init_metrics: errors of the
     initialisation against GT; decision: the online window's decision, with the clip's own initialisation (chained
-    runs only); calibration: the rig's estimate after the clip (chained runs with self-calibration).
+    runs only); calibration: the rig's estimate after the clip (chained runs with self-calibration); exact_scale:
+    metres per model unit of the clip's prediction where the backbone knew it exactly (``Backbone.exact_scale``: the
+    ground-truth instrument), else None.
     """
 
     indices: np.ndarray
@@ -40,6 +42,7 @@ class ClipEval:
     init_metrics: InitMetrics | None = None
     decision: OnlineDecision | None = None
     calibration: RigEstimate | None = None
+    exact_scale: float | None = None
 
     @property
     def ok(self) -> bool:

@@ -124,6 +124,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
                    "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
                    "scale_rel_sigma": rel_sigma(e),
+                   "scale_exact": e.init.scale / e.exact_scale if e.ok and e.exact_scale else None,
                    **({"rig": e.calibration.as_dict()} if e.calibration is not None else {})} for e in evals],
     })
 

@@ -122,7 +122,8 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
                     status=init.status.value, reason=init.reason, mode=outcome.mode, T_gt=T_gt, down_c1=down_c1,
                     init=init, result=result, fast=outcome.fast, columns=columns,
                     init_metrics=metrics.init_metrics(init, clip.gt), decision=outcome.decision,
-                    calibration=outcome.calibration)
+                    calibration=outcome.calibration,
+                    exact_scale=stream.backbone.exact_scale if result is not None else None)
 
 
 def evaluate_frames(seq: Sequence, idx: np.ndarray, backbone: Backbone, *, options: EvalOptions) -> ClipEval:
@@ -252,8 +253,9 @@ class OnlineRun:
     """The chained run of a sequence: stamps [N] s, T_OB [N,4,4] the odom trajectory, T_WB [N,4,4] GT body poses at
     the same stamps; segment_starts: stamps at which the estimator began a new segment (``Trajectory.resets``);
     decisions: the estimator's description of each clip; resets: clips after the first whose decision restarted the
-    state (every reset the decision log records); scale_err [n_clips]: |Scale (Traj.) - 1| of each chained clip
-    (NaN: no value); independent_status, independent_scale_err, independent_rel_sigma [n_clips]: each clip's own
+    state (every reset the decision log records); scale_err [n_clips]: each chained clip's scale error
+    (``claims.scale_error``; NaN: no value); independent_status, independent_scale_err, independent_rel_sigma
+    [n_clips]: each clip's own
     GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale sigma;
     metrics: None when the trajectory cannot be scored, ``reason`` then says why; coverage: how soon and how often
     the run claimed in flight, and its scale links (``vi3_core.eval.coverage``); calibration: the rig's estimate after
@@ -337,8 +339,10 @@ def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[
     run.stamps, run.T_OB, run.segment_starts = traj.stamps, traj.T_OB, list(traj.resets)
     run.T_WB = seq.gt.at(traj.stamps).T_WB if len(traj.stamps) else np.zeros((0, 4, 4))
     run.scale_err = np.array([scale_error(e, e.mode) for e in evals])
-    # Scale (fit) is linear in the scale: the clip's own init's is the base's times its scale.
-    base = np.array([e.columns["base"].scale_fit if "base" in e.columns else np.nan for e in evals])
+    # Scale (fit) is linear in the scale: the clip's own init's is the base's times its scale (the base's is
+    # 1 / exact_scale where the backbone knew that, as claims.scale_error scores it).
+    base = np.array([1.0 / e.exact_scale if e.exact_scale else
+                     e.columns["base"].scale_fit if "base" in e.columns else np.nan for e in evals])
     own = [e.decision.own for e in evals]
     scale = np.array([o.scale for o in own], dtype=np.float64)
     ok = np.array([o.ok for o in own], dtype=bool)

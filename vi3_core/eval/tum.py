@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from vi3_core import so3
+from vi3_core.dataset.sequence import GroundTruthTrack
 from vi3_core.errors import DataError
 from vi3_core.eval.clip_eval import ClipEval
 
@@ -37,6 +38,19 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if rows.shape[1] != 8:
         raise DataError(f"{path}: TUM lines need 8 columns (t tx ty tz qx qy qz qw), found {rows.shape[1]}")
     return rows[:, 0], so3.make_T(so3.quat_to_R(rows[:, 4:8]), rows[:, 1:4])
+
+
+def reference_track(path: str | Path) -> GroundTruthTrack:
+    """The ground truth of a TUM file of IMU body poses in a gravity-aligned, z-up world (``vi3 eval --reference``):
+    velocities from the positions, biases unknown. DataError naming the file when it is not one (too few poses,
+    stamps not increasing, a rotation that is not one)."""
+    try:
+        stamps, T = read_tum(path)
+    except (OSError, ValueError) as err:
+        raise DataError(f"{path}: not a TUM trajectory ({err})") from None
+    if len(stamps) < 2 or np.any(np.diff(stamps) <= 0) or not np.isfinite(T).all():
+        raise DataError(f"{path}: a reference needs >= 2 poses with increasing stamps and finite values")
+    return GroundTruthTrack(stamps, T, t_ns=np.round(stamps * 1e9).astype(np.int64))
 
 
 def export_tum(out_dir: str | Path, evals: Sequence[ClipEval]) -> list[Path]:

@@ -87,6 +87,12 @@ def scale_agreement(own: ScaleFit, lam: float, rel_sigma: float) -> tuple[float,
     return z, float(math.erfc(abs(z) / math.sqrt(2.0)))
 
 
+def moves(geometry: Geometry) -> bool:
+    """Whether the backbone's cameras move at all (a clip it could not reconstruct has translations of exactly 0)."""
+    t = geometry.T_wc[:, :3, 3]
+    return bool(np.isfinite(t).all() and np.abs(t).max(initial=0.0) > 0.0)
+
+
 SAME_SAMPLE_S = 1e-6  # s: IMU stamps closer than this are one sample
 
 
@@ -193,7 +199,9 @@ class OnlineEstimator:
             return None, (f"none (the clip does not start with the {k} frame(s) kept from the clip at "
                           f"{shared.clip_start:.3f} s)")
         measured = measure_link(shared, geometry, sigma_v, sigma_floor=self.options.link_sigma_floor)
-        return (None, f"none ({measured})") if isinstance(measured, str) else (measured, "")
+        if isinstance(measured, str):
+            return None, f"none ({measured})"
+        return (measured.across(shared.bridge, shared.clip_start) if shared.bridge is not None else measured), ""
 
     def _refused_link(self, sol: Solution) -> str:
         """Why the newest member's scale link is inconsistent with the window fit ``sol`` ("" when it is not, or is
@@ -247,17 +255,19 @@ class OnlineEstimator:
             return self._decide(InitResult(InitStatus.REJECTED, why, bg=bg, diagnostics=dict(free.diagnostics)),
                                 replace(decision, rejected={"clip": why}), free)
         own = free.fit
-        if not (own.lam > 0 and np.isfinite(own.scale_rel_sigma)):
-            # Poses that carry no scale (no translation, or motion opposite to the IMU's) would only add noise that
-            # the window cannot weigh: the clip stays out, the window goes on.
-            why = f"its own poses carry no scale ({free.reason})"
+        if own is None or not np.isfinite(own.sigma_v) or not moves(geometry):
+            # Poses without translation say nothing of a scale (the backbone saw no parallax, or no motion): the clip
+            # stays out, the window goes on. Every other clip's evidence joins, however weak, zero or negative its
+            # own scale: only the claim is gated, and a window of clips that each say little says much.
+            why = f"its poses carry no scale ({free.reason})"
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, f"scale unobservable: {why}", bg=bg,
                                            fit=own, diagnostics=dict(free.diagnostics)),
                                 replace(decision, rejected={"clip": why}), free)
         measured, link_note = self._link(clip, geometry, own.sigma_v)
+        sure = own.lam > 0 and np.isfinite(own.scale_rel_sigma)  # else the window starts it from its neighbour
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
-                        sigma_v=own.sigma_v, lam=own.lam, v=np.asarray(own.v1), g=np.asarray(free.g),
-                        link=measured)
+                        sigma_v=own.sigma_v, lam=own.lam if sure else float("nan"),
+                        v=np.asarray(own.v1) if sure else np.full(3, np.nan), g=np.asarray(free.g), link=measured)
         reset, self._reset = self._restart_reason(t1, t_end) or self._reset, ""
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)
@@ -284,6 +294,10 @@ class OnlineEstimator:
             # A window that has not claimed a scale yet has nothing to defend: the clip that disagrees with it
             # starts a new one (after a hover or a stretch of bad data the new clip is as likely to be right).
             if self._rejects < o.online_max_rejects and self._window_claimed:
+                if o.shared_frames and measured is not None and measured.via is None:
+                    # its depth still ties the next clip to the window: the next links across it
+                    self.shared = SharedFrames.of(clip, geometry, k=o.shared_frames, sigma_v=own.sigma_v,
+                                                  bridge=measured)
                 return self._decide(InitResult(InitStatus.REJECTED, f"inconsistent with the online window: {why}",
                                                bg=bg, fit=own, diagnostics=dict(free.diagnostics)),
                                     replace(decision, rejected={"clip": why}, scale_p=p_scale), free)

@@ -38,11 +38,12 @@ MIN_DISPLACEMENT_SIGMAS = 5.0  # a pose link needs a displacement this many of i
 
 @dataclass(frozen=True)
 class SharedFrames:
-    """The last frames of a clip that joined the window, kept for the next clip to share: stamps [k] s (and their
-    header stamps_ns [k] int64, or None); images [k,H,W] or [k,H,W,3] uint8 (undistorted, as the backbone saw them);
-    T_wc [k,4,4] in their clip's first camera frame and depth, conf [k,h,w] (model units of that clip); sigma_v: that
-    clip's visual noise per axis (model units); gt: their ground truth (evaluation only, else None); clip_start: that
-    clip's first stamp (s), which names it."""
+    """The last frames of a clip, kept for the next clip to share: stamps [k] s (and their header stamps_ns [k]
+    int64, or None); images [k,H,W] or [k,H,W,3] uint8 (undistorted, as the backbone saw them); T_wc [k,4,4] in their
+    clip's first camera frame and depth, conf [k,h,w] (model units of that clip); sigma_v: that clip's visual noise
+    per axis (model units); gt: their ground truth (evaluation only, else None); clip_start: that clip's first stamp
+    (s), which names it; bridge: None for a clip that joined the window; for one that did not (inconsistent with
+    it), its own link to the window's newest member, through which the next clip links across it."""
 
     stamps: np.ndarray
     stamps_ns: np.ndarray | None
@@ -53,15 +54,18 @@ class SharedFrames:
     sigma_v: float
     gt: GroundTruth | None
     clip_start: float
+    bridge: MeasuredLink | None = None
 
     @staticmethod
-    def of(clip: Clip, geometry: Geometry, *, k: int, sigma_v: float) -> SharedFrames:
-        """The last ``k`` frames of ``clip`` and of its prediction ``geometry``; sigma_v: its visual noise."""
+    def of(clip: Clip, geometry: Geometry, *, k: int, sigma_v: float,
+           bridge: MeasuredLink | None = None) -> SharedFrames:
+        """The last ``k`` frames of ``clip`` and of its prediction ``geometry``; sigma_v: its visual noise; bridge:
+        see the class docstring."""
         tail = slice(clip.n - k, None)
         return SharedFrames(np.array(clip.stamps[tail]), None if clip.stamps_ns is None else
                             np.array(clip.stamps_ns[tail]), np.array(clip.images[tail]), np.array(geometry.T_wc[tail]),
                             np.array(geometry.depth[tail]), np.array(geometry.conf[tail]), float(sigma_v),
-                            _gt_frames(clip.gt, tail), float(clip.stamps[0]))
+                            _gt_frames(clip.gt, tail), float(clip.stamps[0]), bridge)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -102,17 +106,30 @@ class SharedFrames:
 @dataclass(frozen=True)
 class MeasuredLink:
     """A link measured on ``frames`` shared frames from ``source`` ("depth", "poses" or "depth+poses"): ``link`` the
-    ratio for the fit, and the clip it links to (``clip_start``, s)."""
+    ratio for the fit, and the clip it links to (``clip_start``, s); ``via``: the first stamp of a clip that did not
+    join the window, when the link runs across it (the product of this clip's link to it and its own to the clip at
+    clip_start), else None."""
 
     link: ScaleLink
     frames: int
     source: str
     clip_start: float
+    via: float | None = None
 
     def describe(self) -> str:
         ratio = math.exp(self.link.log_ratio)
-        return (f"{self.source} of {self.frames} frame(s) shared with the clip at {self.clip_start:.3f} s: scale "
-                f"ratio {ratio:.4f} +- {100 * self.link.sigma:.2f} %")
+        shared = (f"shared with the clip at {self.via:.3f} s (not in the window), across it to the clip at "
+                  f"{self.clip_start:.3f} s" if self.via is not None else
+                  f"shared with the clip at {self.clip_start:.3f} s")
+        return (f"{self.source} of {self.frames} frame(s) {shared}: scale ratio {ratio:.4f} +- "
+                f"{100 * self.link.sigma:.2f} %")
+
+    def across(self, bridge: MeasuredLink, via: float) -> MeasuredLink:
+        """This link (to the clip at ``via``) continued by that clip's ``bridge`` to the window: ratios multiply,
+        independent errors add."""
+        return MeasuredLink(ScaleLink(self.link.log_ratio + bridge.link.log_ratio,
+                                      math.hypot(self.link.sigma, bridge.link.sigma)),
+                            self.frames, self.source, bridge.clip_start, via)
 
 
 def depth_link(prev_depth: np.ndarray, prev_conf: np.ndarray, depth: np.ndarray, conf: np.ndarray, *,

@@ -167,7 +167,8 @@ class StreamEstimator:
                                calibration=rig)
         if before_backbone is not None and not before_backbone():
             return None
-        self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n))
+        # without the window each clip stands alone (the independent evaluation runs its clips in any order)
+        self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n), continued=self.window is not None)
         fast: list[AnchorResult] = []
 
         def take_fast(result: AnchorResult) -> None:

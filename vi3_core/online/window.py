@@ -12,6 +12,7 @@ clip that stays, so evidence accumulates instead of expiring with the window.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,8 +122,14 @@ class Window:
                         estimate_walk=self.visual_drift)
         R0 = [pre.R[b.first] for b in fit.blocks]
         lam = np.array([m.lam for m in members])
-        state = fit.initial_state(R0[0] @ members[0].g, np.where(np.isfinite(lam) & (lam > 0), lam, np.nan))
         known = np.isfinite(lam) & (lam > 0)
+        # a member whose own scale was not sure starts from the one before it, through their scale link where they
+        # have one (two clips of one scene, normalised alike, are at like scales)
+        start = lam.copy()
+        for k in range(1, len(members)):
+            if not known[k] and np.isfinite(start[k - 1]) and start[k - 1] > 0:
+                start[k] = start[k - 1] * (math.exp(links[k - 1].log_ratio) if links[k - 1] is not None else 1.0)
+        state = fit.initial_state(R0[0] @ members[0].g, np.where(np.isfinite(start) & (start > 0), start, np.nan))
         state.v[known] = np.stack([R @ m.v for R, m in zip(R0, members)])[known]
         priors = (self.prior,) if self.prior is not None else ()
         result = fit.solve(state, priors=priors)

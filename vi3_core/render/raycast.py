@@ -88,36 +88,46 @@ class Renderer:
         return rows, cols
 
     def cast(self, T_WC: np.ndarray, rs: _RaySet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """First hits of the rays of ``rs`` from camera pose T_WC [4,4].
+        """First hits of the rays of ``rs`` from camera pose T_WC [4,4], or one pose per image row [H,4,4] (a rolling
+        shutter: each row exposed at its own time).
 
         Returns t [H,W] float32 (= z-depth for z = 1 rays; inf on a miss), face id [H,W] int64, and the world
         directions [3,H,W] float32.
         """
         sc = self.scene
         h, w = self.shape
-        d = (T_WC[:3, :3].astype(np.float32) @ rs.rays.reshape(3, -1)).reshape(3, h, w)
-        o = T_WC[:3, 3]
+        if T_WC.ndim == 3:
+            d = np.einsum("rij,jrc->irc", T_WC[:, :3, :3].astype(np.float32), rs.rays)
+            o = T_WC[:, :3, 3].T[:, :, None]  # [3,H,1]: each row's camera centre
+        else:
+            d = (T_WC[:3, :3].astype(np.float32) @ rs.rays.reshape(3, -1)).reshape(3, h, w)
+            o = T_WC[:3, 3]
         with np.errstate(divide="ignore"):
             inv = 1.0 / d
         pos = d > 0
         # Inside the room: each axis exits through the wall it heads towards (the positive ray parameter).
-        t_ax = [np.maximum(inv[a] * np.float32(sc.room_hi[a] - o[a]), inv[a] * np.float32(sc.room_lo[a] - o[a]))
-                for a in range(3)]
+        t_ax = [np.maximum(inv[a] * (sc.room_hi[a] - o[a]).astype(np.float32),
+                           inv[a] * (sc.room_lo[a] - o[a]).astype(np.float32)) for a in range(3)]
         t = np.minimum(np.minimum(t_ax[0], t_ax[1]), t_ax[2])
         ax = np.where(t == t_ax[0], 0, np.where(t == t_ax[1], 1, 2))
         face = 2 * ax + np.take_along_axis(pos, ax[None], 0)[0]
-        T_CW = np.linalg.inv(T_WC)
+        # a rolling shutter's rows see a box within the union of what its first, middle and last rows see
+        poses = T_WC[[0, h // 2, h - 1]] if T_WC.ndim == 3 else T_WC[None]
+        T_CWs = np.linalg.inv(poses)
         with np.errstate(invalid="ignore"):  # 0 * inf on rays parallel to a face: NaN, never a hit
             for b in range(len(sc.box_lo)):  # few boxes; each test is vectorised over its pixel window
-                window = self._box_window(rs, sc.box_lo[b], sc.box_hi[b], T_CW)
-                if window is None:
+                windows = [wdw for wdw in (self._box_window(rs, sc.box_lo[b], sc.box_hi[b], T) for T in T_CWs)
+                           if wdw is not None]
+                if not windows:
                     continue
-                rows, cols = window
+                rows = slice(min(r.start for r, _ in windows), max(r.stop for r, _ in windows))
+                cols = slice(min(c.start for _, c in windows), max(c.stop for _, c in windows))
+                o_rows = o[:, rows] if np.ndim(o) == 3 else o
                 near = far = axis_in = None
                 for a in range(3):
                     inv_a = inv[a, rows, cols]
-                    t1 = inv_a * np.float32(sc.box_lo[b, a] - o[a])
-                    t2 = inv_a * np.float32(sc.box_hi[b, a] - o[a])
+                    t1 = inv_a * (sc.box_lo[b, a] - o_rows[a]).astype(np.float32)
+                    t2 = inv_a * (sc.box_hi[b, a] - o_rows[a]).astype(np.float32)
                     n_a, f_a = np.minimum(t1, t2), np.maximum(t1, t2)
                     if near is None:
                         near, far, axis_in = n_a, f_a, np.zeros(n_a.shape, np.int64)
@@ -135,7 +145,8 @@ class Renderer:
     def shade(self, T_WC: np.ndarray, t: np.ndarray, face: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Grey level [H,W] float32 in [0, 255] at the hits (bilinear texture lookup x face shade)."""
         sc = self.scene
-        X = T_WC[:3, 3, None, None].astype(np.float32) + t * d
+        o = T_WC[:, :3, 3].T[:, :, None] if T_WC.ndim == 3 else T_WC[:3, 3, None, None]
+        X = o.astype(np.float32) + t * d
         axis = sc.face_axis[face]
         # In-plane coordinates: (y, z) on x-faces, (x, z) on y-faces, (x, y) on z-faces.
         u = np.where(axis == 0, X[1], X[0])
@@ -152,6 +163,12 @@ class Renderer:
         top = a[base] * (1 - fx) + a[base + 1] * fx
         bot = a[base + tw] * (1 - fx) + a[base + tw + 1] * fx
         return (top * (1 - fy) + bot * fy) * sc.shade[face]
+
+    def radiance(self, T_WC: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The raw (distorted) image's grey levels [H,W] float32 (0-255) from camera pose T_WC [4,4], or one pose per
+        row [H,4,4], and the hits' ray parameter (z-depth of the raw rays) [H,W] float32 (inf on a miss)."""
+        t, face, d = self.cast(T_WC, self.raw)
+        return self.shade(T_WC, t, face, d), t
 
     def render(self, T_WC: np.ndarray, *, with_depth: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Raw (distorted) mono8 image [H,W] uint8 and z-depth [H,W] float32 (m) of the undistorted image."""

@@ -18,7 +18,10 @@ from vi3_core.render.textures import procedural_texture
 
 @dataclass(frozen=True)
 class SceneSpec:
-    """Room bounds [3] (m), flight volume, box count and size range, texel size (m)."""
+    """Room bounds [3] (m), flight volume, box count and size range, texel size (m); the room's and the boxes' surfaces:
+    mean grey (0-1), contrast (the texture's standard deviation), rectangles per square metre (posters, sockets,
+    handles: what corners a plain surface has) and their own contrast (None: part of the texture); ``box_tones``: the
+    spread each box's mean grey is drawn in around the boxes' (furniture of many colours)."""
 
     room_lo: tuple[float, float, float]
     room_hi: tuple[float, float, float]
@@ -29,6 +32,9 @@ class SceneSpec:
     box_height: tuple[float, float]
     texel: float = 0.005
     clearance: float = 0.6
+    wall: tuple[float, float, float, float | None] = (0.5, 0.17, 40.0, None)
+    box: tuple[float, float, float, float | None] = (0.5, 0.17, 40.0, None)
+    box_tones: float = 0.0
 
 
 SCENES: dict[str, SceneSpec] = {
@@ -38,6 +44,12 @@ SCENES: dict[str, SceneSpec] = {
                       n_boxes=12, box_size=(0.5, 1.5), box_height=(0.6, 2.5), texel=0.008),
     "corridor": SceneSpec((-6.0, -1.6, 0.0), (6.0, 1.6, 2.8), (0.0, 0.0, 1.3), (3.5, 0.3, 0.3),
                           n_boxes=8, box_size=(0.3, 0.7), box_height=(0.3, 1.2), clearance=0.4),
+    # a bedroom as a handheld RealSense recording shows one: light walls of little texture with what hangs on them
+    # (a rectangle every few square metres), dark furniture with its clutter; sized so that the front end finds as
+    # many corners per frame in it as in the recording (docs/accuracy.md: 415 live tracks against 381)
+    "bedroom": SceneSpec((-2.2, -1.9, 0.0), (2.2, 1.9, 2.6), (0.0, 0.0, 1.3), (0.8, 0.6, 0.25),
+                         n_boxes=12, box_size=(0.3, 1.4), box_height=(0.3, 1.9), clearance=0.3,
+                         wall=(0.62, 0.10, 8.0, 0.5), box=(0.3, 0.20, 30.0, 0.3), box_tones=0.2),
 }
 
 #: In-plane (u, v) axes of a face whose normal is along axis a.
@@ -133,8 +145,13 @@ def make_scene(name: str = "room", seed: int = 0, *, center=None, extent=None) -
     size = np.take_along_axis(his[owner], uv, 1) - origin
     tex_w = np.ceil(size[:, 0] / spec.texel).astype(np.int64) + 2
     tex_h = np.ceil(size[:, 1] / spec.texel).astype(np.int64) + 2
-    textures = [procedural_texture(rng, (int(h), int(w)), texel=spec.texel).reshape(-1)
-                for h, w in zip(tex_h, tex_w)]
+    tone = np.zeros(len(los))
+    if spec.box_tones:
+        tone[1:] = rng.uniform(-spec.box_tones, spec.box_tones, len(los) - 1)
+    surface = [spec.wall if o == 0 else (spec.box[0] + tone[o], *spec.box[1:]) for o in owner]
+    textures = [procedural_texture(rng, (int(h), int(w)), texel=spec.texel, mean=m, contrast=c, rect_density=r,
+                                   rect_contrast=rc).reshape(-1)
+                for h, w, (m, c, r, rc) in zip(tex_h, tex_w, surface)]
     offset = np.concatenate([[0], np.cumsum([len(t) for t in textures])[:-1]]).astype(np.int64)
     # Outward normal of each face as seen by the camera: room faces face inwards, box faces outwards.
     normal = np.zeros((len(axis), 3))

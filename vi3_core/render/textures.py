@@ -37,14 +37,21 @@ def _rectangles(rng: np.random.Generator, h: int, w: int, texel: float, density:
 
 
 def procedural_texture(rng: np.random.Generator, shape: tuple[int, int], *, texel: float,
-                       rect_density: float = 40.0) -> np.ndarray:
-    """A texture of ``shape`` (h, w) texels of ``texel`` metres: float32 in [0.04, 0.96], mean ~0.5."""
+                       rect_density: float = 40.0, mean: float = 0.5, contrast: float = 0.17,
+                       rect_contrast: float | None = None) -> np.ndarray:
+    """A texture of ``shape`` (h, w) texels of ``texel`` metres: float32 in [0.04, 0.96], about ``mean`` with a
+    standard deviation of ``contrast``; ``rect_contrast``: the rectangles' own grey offsets (times [-0.5, 0.5]) on a
+    plain surface (painted walls: a switch, a picture), else they are part of the texture its contrast is set for."""
     h, w = shape
     tex = np.zeros((h, w), np.float32)
     for wavelength, amp in _OCTAVES:
         tex += amp * _noise_octave(rng, h, w, max(wavelength / texel, 1.0))
-    tex += 1.6 * _rectangles(rng, h, w, texel, rect_density)
+    rects = _rectangles(rng, h, w, texel, rect_density)
+    if rect_contrast is None:
+        tex += 1.6 * rects
     # Band-limit to about two texels so that bilinear lookups do not alias at EuRoC's pixel footprint.
     tex = cv2.GaussianBlur(tex, (0, 0), 0.8)
-    tex = 0.5 + 0.17 * (tex - tex.mean()) / max(float(tex.std()), 1e-6)
+    tex = mean + contrast * (tex - tex.mean()) / max(float(tex.std()), 1e-6)
+    if rect_contrast is not None:
+        tex += 2.0 * rect_contrast * cv2.GaussianBlur(rects, (0, 0), 0.8)
     return np.clip(tex, 0.04, 0.96)

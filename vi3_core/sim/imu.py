@@ -33,23 +33,32 @@ EUROC_NOISE = ImuNoise()
 
 @dataclass(frozen=True)
 class Vibration:
-    """Airframe vibration (propellers) seen by the IMU: zero-mean noise above ``cutoff_hz`` with per-axis RMS
-    ``accel_rms`` (m/s^2) and ``gyro_rms`` (rad/s) in the body frame. Defaults: EuRoC V1_02_medium's real IMU in
-    flight, 15-95 Hz band (../shared/data/euroc_v102_imu_gt). Its displacement is micrometres, so it is in the IMU
-    only, not in the ground-truth motion; EuRoC's ``sensor.yaml`` noise densities do not include it either."""
+    """Airframe vibration (propellers) seen by the IMU: zero-mean noise above ``cutoff_hz`` (and below ``max_hz``,
+    when set) with per-axis RMS ``accel_rms`` (m/s^2) and ``gyro_rms`` (rad/s) in the body frame. Defaults: EuRoC
+    V1_02_medium's real IMU in flight, 15-95 Hz band (../shared/data/euroc_v102_imu_gt). Its displacement is
+    micrometres, so it is in the IMU only, not in the ground-truth motion; EuRoC's ``sensor.yaml`` noise densities do
+    not include it either."""
 
     accel_rms: tuple[float, float, float] = (0.85, 0.47, 0.62)
     gyro_rms: tuple[float, float, float] = (0.018, 0.036, 0.024)
     cutoff_hz: float = 15.0
+    max_hz: float | None = None
 
 
 #: The vibration of EuRoC's AscTec Firefly in flight, on by default in the realistic motion presets.
 EUROC_VIBRATION = Vibration()
+#: A hand's tremor and steps as a handheld RealSense's IMU shows them (github Zoltan3057/DM-VIO-dataset): 4-16 Hz.
+HANDHELD_TREMOR = Vibration(accel_rms=(0.22, 0.12, 0.17), gyro_rms=(0.034, 0.029, 0.047), cutoff_hz=4.0, max_hz=16.0)
+#: That RealSense's IMU: its white-noise floor (60-95 Hz of the recording), the random walks of its Kalibr file.
+REALSENSE_NOISE = ImuNoise(gyro_noise_density=1.6e-4, gyro_random_walk=2.6e-6, accel_noise_density=7.5e-4,
+                           accel_random_walk=3.0e-3)
 
 def default_vibration(motion: str, noisy: bool) -> Vibration | None:
-    """``EUROC_VIBRATION`` for a noisy IMU on a realistic motion preset; None for ``agile`` (the earlier generator)
-    or a noise-free IMU."""
-    return EUROC_VIBRATION if noisy and motion != "agile" else None
+    """``HANDHELD_TREMOR`` for a noisy IMU carried by hand, ``EUROC_VIBRATION`` on the other realistic motion
+    presets; None for ``agile`` (the earlier generator) or a noise-free IMU."""
+    if not noisy or motion == "agile":
+        return None
+    return HANDHELD_TREMOR if motion == "handheld" else EUROC_VIBRATION
 
 
 #: Accelerometer bias magnitude of a sequence, m/s^2 (EuRoC's ground truth: 0.05-0.2; V1_02: 0.14).
@@ -99,7 +108,9 @@ class ImuSimulator:
         self._vibration = vibration
         if vibration is not None:
             nyquist = 0.5 / self.dt
-            self._sos = butter(4, vibration.cutoff_hz / nyquist, btype="highpass", output="sos")
+            band = (vibration.cutoff_hz / nyquist if vibration.max_hz is None else
+                    [vibration.cutoff_hz / nyquist, min(vibration.max_hz / nyquist, 0.99)])
+            self._sos = butter(4, band, btype="highpass" if vibration.max_hz is None else "bandpass", output="sos")
             impulse = np.zeros(4096)
             impulse[0] = 1.0
             gain = np.sqrt(np.sum(sosfilt(self._sos, impulse) ** 2))  # RMS of filtered unit white noise

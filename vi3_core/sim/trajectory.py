@@ -9,8 +9,10 @@ Drone motion comes in presets (``MOTIONS``). ``easy``, ``medium`` and ``difficul
 sequences: a smooth flight whose acceleration spectrum falls off above ~0.3 Hz like V1_02_medium's, with the
 vehicle tilting its thrust axis along the acceleration as a multirotor does (plus a small attitude wobble), and
 the speed, acceleration and angular-rate medians of the preset fitted per seed (``PRESETS``; docs/evaluation.md
-lists the percentiles they give). ``agile`` is the earlier generator: slow drift with fast small manoeuvres on top
-and an attitude independent of the acceleration.
+lists the percentiles they give). ``handheld`` is a camera carried by hand around a room: the same spectrum of
+gentler motion (the medians of a real handheld RealSense recording), the camera held roughly level and panned, its
+attitude its own (slow yaw, a few degrees of pitch and roll), not the thrust's. ``agile`` is the earlier generator:
+slow drift with fast small manoeuvres on top and an attitude independent of the acceleration.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ R_MOUNT = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 GRAVITY = 9.81
 
 KINDS = ("drone", "hover", "pure_rotation", "stationary")
-MOTIONS = ("easy", "medium", "difficult", "agile")
+MOTIONS = ("easy", "medium", "difficult", "handheld", "agile")
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,9 @@ PRESETS: dict[str, MotionPreset] = {
     "easy": MotionPreset(speed=0.40, accel=0.35, angular_rate=0.19),
     "medium": MotionPreset(speed=0.92, accel=1.12, angular_rate=0.42),
     "difficult": MotionPreset(speed=0.78, accel=1.12, angular_rate=0.55),
+    # a person walking a RealSense around a bedroom (github Zoltan3057/DM-VIO-dataset: |gyro| 0.11-0.18 rad/s, the
+    # accelerometer norm's standard deviation 0.16-0.30 m/s^2 per 10 s; its speed from an offline reconstruction)
+    "handheld": MotionPreset(speed=0.25, accel=0.25, angular_rate=0.13, wobble_deg=2.0),
 }
 
 
@@ -180,7 +185,8 @@ def make_trajectory(kind: str = "drone", seed: int = 0, *, motion: str = "medium
     c = np.asarray(center, dtype=np.float64)
     yaw0 = rng.uniform(-np.pi, np.pi)
     if kind == "drone" and motion != "agile":
-        return _flight(rng, PRESETS[motion], c, np.asarray(extent, dtype=np.float64), yaw0)
+        return _flight(rng, PRESETS[motion], c, np.asarray(extent, dtype=np.float64), yaw0,
+                       handheld=motion == "handheld")
     if kind == "drone":
         pos, att = _agile(rng, c, np.asarray(extent, dtype=np.float64), yaw0)
     elif kind == "hover":
@@ -226,12 +232,12 @@ _FIT_T = np.sort(np.random.default_rng(0).uniform(0.0, 120.0, 800))
 
 
 def _flight(rng: np.random.Generator, preset: MotionPreset, c: np.ndarray, ext: np.ndarray,
-            yaw0: float) -> Trajectory:
+            yaw0: float, *, handheld: bool = False) -> Trajectory:
     """A realistic flight: per axis ``_N_POS`` sinusoids at frequencies f0 * ``_REL_FREQ`` (jittered) with
     acceleration amplitudes ~ freq**``_BETA``, position amplitudes summing to ``fill`` * ``ext``; yaw a sum of
-    slow sinusoids of rate gain ``gy``; thrust-aligned pitch and roll with a small wobble. f0 and fill (<= 1) are
-    solved so that the medians of |v| and |a| over ``_FIT_T`` are the preset's, then gy for |omega| (0 if
-    the tilt alone turns faster)."""
+    slow sinusoids of rate gain ``gy``; thrust-aligned pitch and roll with a small wobble (``handheld``: pitch and roll
+    their own slow sinusoids, the wobble's size, and the yaw's). f0 and fill (<= 1) are solved so that the medians of
+    |v| and |a| over ``_FIT_T`` are the preset's, then gy for |omega| (0 if the tilt alone turns faster)."""
     rel = _REL_FREQ * rng.uniform(0.8, 1.25, size=(3, _N_POS))
     shape = rel ** (_BETA - 2.0) * rng.uniform(0.6, 1.4, size=(3, _N_POS))
     shape *= (ext / shape.sum(1))[:, None] * rng.choice([-1.0, 1.0], size=(3, _N_POS))
@@ -242,11 +248,18 @@ def _flight(rng: np.random.Generator, preset: MotionPreset, c: np.ndarray, ext: 
     wobble = Sines(np.radians(preset.wobble_deg) * rng.uniform(0.5, 1.0, size=(2, 3)),
                    rng.uniform(1.0, 3.0, size=(2, 3)), rng.uniform(0.0, 2.0 * np.pi, size=(2, 3)),
                    np.zeros(2), np.zeros(2))
+    tilt_phase = rng.uniform(0.0, 2.0 * np.pi, size=(2, 3))
+    tilt = np.radians(preset.wobble_deg) * rng.uniform(0.5, 1.0, size=(2, 3)) * rng.choice([-1.0, 1.0], size=(2, 3))
 
     def build(f0: float, fill: float, gy: float) -> Trajectory:
         pos = Sines(fill * shape, f0 * rel, phase, c, np.zeros(3))
         # Yaw-rate amplitudes gy per component; yaw frequencies tied to the flight's.
         yaw = Sines(yaw_amp * gy / f0, f0 * yaw_rel, yaw_phase, np.array([yaw0]), np.zeros(1))
+        if handheld:  # yaw, pitch and roll of their own (the hand's), tilt at the flight's frequencies
+            att = Sines(np.concatenate([yaw.amp, tilt * max(gy, 1e-3) / max(preset.angular_rate, 1e-3)]),
+                        np.concatenate([yaw.freq, f0 * np.tile(yaw_rel, (2, 1))]),
+                        np.concatenate([yaw.phase, tilt_phase]), np.array([yaw0, 0.0, 0.0]), np.zeros(3))
+            return Trajectory(kind="drone", position=pos, attitude=att)
         return Trajectory(kind="drone", position=pos, attitude=ThrustAttitude(pos, yaw, wobble))
 
     def median(f) -> float:

@@ -12,6 +12,7 @@ BENCHES: dict[str, str] = {
     "init": "vi3_core.init.bench:bench_init",
     "pointcloud": "msg_adapters.bench:bench_pointcloud",
     "backbone": "vi3_core.backbones.bench:bench_backbone",
+    "tracker": "vi3_core.backbones.classical.bench:bench_tracker",
     "ttr": "vi3_core.anchor.bench:bench_ttr",
     "replay": "vi3_ros.replay_bench:bench_replay",
     "pipeline": "vi3_ros.replay_bench:bench_pipeline",

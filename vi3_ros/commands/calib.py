@@ -84,20 +84,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _check_output(args: argparse.Namespace) -> None:
-    from vi3_core.errors import DataError
-    from vi3_core.paths import check_apart
+    from vi3_core.paths import check_output_file
 
-    if not args.output.strip():
-        raise DataError(f"vi3 calib --output {args.output!r}: an empty name; name a YAML file (or leave --output out "
-                        "for standard output)")
-    out = Path(args.output)
-    check_apart(out, [args.input, *([args.calib] if args.calib else [])], what="vi3 calib --output")
-    if out.is_dir():
-        raise DataError(f"vi3 calib --output {out}: is a folder; name a YAML file")
-    if out.exists() and not args.force:
-        raise DataError(f"vi3 calib --output {out}: exists; pass --force to replace it")
-    if not out.parent.is_dir():
-        raise DataError(f"vi3 calib --output {out}: its folder does not exist")
+    check_output_file(args.output, [args.input, *([args.calib] if args.calib else [])], what="vi3 calib --output",
+                      kind="a YAML file", force=args.force, empty_hint=" (or leave --output out for standard output)")
 
 
 def _corrected(rig):

@@ -48,6 +48,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "default: /cam0/image_raw, else the only image topic)")
     p.add_argument("--imu-topic", default=None, help="IMU topic of a bag (default: /imu0, else the only "
                    "sensor_msgs/Imu topic)")
+    p.add_argument("--reference", default=None, metavar="TUM",
+                   help="ground truth for a recording that has none: a TUM trajectory (t tx ty tz qx qy qz qw per "
+                        "line; s, m) of the IMU body in a gravity-aligned, z-up world, as a motion-capture system or "
+                        "`vi3 reference` writes it (velocities from its positions, biases unknown), stamped on the "
+                        "frames' clock; the frames it covers are evaluated; one input only")
     p.add_argument("--backbone", default="classical",
                    help="3DFM backbone (default: the embedded 'classical'); 'gt' is the ground-truth pose instrument "
                         "(see --gt-noise), an evaluation tool, never a backbone for the node")
@@ -145,14 +150,20 @@ def _opener(args: argparse.Namespace, *, absolute: bool = False) -> functools.pa
     """A function that opens an input path with the run's calibration and topics (it pickles, for Ray workers;
     ``absolute``: with the calibration's absolute path, for workers in another folder)."""
     calib = os.path.abspath(args.calib) if absolute and args.calib else args.calib
+    reference = os.path.abspath(args.reference) if absolute and args.reference else args.reference
     return functools.partial(_open_path, calib=calib, image_topic=args.image_topic, imu_topic=args.imu_topic,
-                             calib_error=args.calib_error)
+                             calib_error=args.calib_error, reference=reference)
 
 
-def _open_path(path: str, *, calib_error=None, **kwargs):
+def _open_path(path: str, *, calib_error=None, reference: str | None = None, **kwargs):
+    from vi3_core.eval.tum import reference_track
     from vi3_ros.io.reader import open_sequence
 
     seq = open_sequence(path, **kwargs)
+    if reference:
+        track = reference_track(reference)
+        seq = seq.within(track.t[0], track.t[-1])
+        seq.gt = track
     return calib_error.apply(seq) if calib_error is not None else seq
 
 
@@ -344,6 +355,8 @@ def _prepare(args: argparse.Namespace) -> tuple:
     args.settings = settings = settings_from_cli(args.params_file, args.param, {
         "mode": args.mode, "online": False if args.independent else None})
     _check_ray_args(args)
+    if args.reference and len(args.input) != 1:
+        raise ValueError(f"--reference is the ground truth of one input; {len(args.input)} inputs were given")
     clips = args.clips or ("sliding" if _chained(args) else "paper")
     buf = settings.buffer
     options = runner.EvalOptions(

@@ -34,6 +34,7 @@ OUTPUTS = ("asl", "ros1.bag", "mcap", "camchain-imucam.yaml")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from vi3_core.dataset.generate import CAMERAS
     from vi3_core.render.scene import SCENES
     from vi3_core.sim.trajectory import MOTIONS
 
@@ -45,8 +46,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed: scene, trajectory, IMU noise (default 0)")
     p.add_argument("--scene", default="room", choices=sorted(SCENES), help="scene (default room)")
     p.add_argument("--motion", default=None, choices=MOTIONS,
-                   help="motion preset: easy, medium, difficult (EuRoC-like, see docs/evaluation.md) or agile "
-                        "(slow drift with quick small manoeuvres); default medium")
+                   help="motion preset: easy, medium, difficult (EuRoC-like, see docs/evaluation.md), handheld (a "
+                        "camera carried around a room) or agile (slow drift with quick small manoeuvres); default "
+                        "medium")
+    p.add_argument("--camera", default="euroc", choices=CAMERAS,
+                   help="camera: euroc (EuRoC's cam0, rendered ideally; default) or realsense (1280x720 through what a "
+                        "real sensor does: rolling shutter, motion blur, auto exposure and its frame rates, lost "
+                        "frames, noise, JPEG; its IMU's noise, merged streams and a clock 53 ms off the frames')")
     p.add_argument("--no-accel-bias", action="store_true",
                    help="zero initial accelerometer bias (default: 0.05-0.2 m/s^2 in a random direction)")
     p.add_argument("--noise-free-imu", action="store_true",
@@ -144,14 +150,16 @@ def _spec(args: argparse.Namespace):
 
     if args.from_euroc is not None:
         given = [flag for flag, on in (("--motion", args.motion is not None), ("--no-accel-bias", args.no_accel_bias),
-                                       ("--noise-free-imu", args.noise_free_imu)) if on]
+                                       ("--noise-free-imu", args.noise_free_imu),
+                                       ("--camera", args.camera != "euroc")) if on]
         if given:
             raise DataError(f"{', '.join(given)}: only for generated sequences; --from-euroc carries the "
                             "recording's own IMU and motion")
     return SequenceSpec(seconds=args.seconds if args.seconds is not None or args.from_euroc else 20.0,
                         seed=args.seed, scene=args.scene, motion=args.motion or "medium",
                         accel_bias=not args.no_accel_bias, imu_noise=not args.noise_free_imu,
-                        with_depth=not args.no_depth, from_euroc=args.from_euroc, start_s=args.start)
+                        with_depth=not args.no_depth, from_euroc=args.from_euroc, start_s=args.start,
+                        camera=args.camera)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,8 +1,11 @@
 """The embedded ``classical`` backbone: up-to-scale multi-view geometry from classical vision, CPU, no weights.
 
-``preprocess`` does the non-differentiable work once per clip: feature tracks (``tracks``), structure from motion
-into one consistent up-to-scale frame (``poses``, ``bundle``) and plane-sweep stereo at the working resolution
-(``mvs``) of the frames whose depth is read (``bind``'s ``depth_frames``; the others NaN with zero confidence).
+``preprocess`` does the non-differentiable work once per clip: the feature tracks of its frames, each frame tracked
+once by a front end that lives across clips (``tracks.FrameTracker``: a clip that starts with the last frame of the
+one before, as ``bind`` tells by the clip's stamps, continues its tracks; any other starts them afresh), structure
+from motion into one consistent up-to-scale frame (``poses``, ``bundle``) and plane-sweep stereo at the working
+resolution (``mvs``) of the frames whose depth is read (``bind``'s ``depth_frames``; the others NaN with zero
+confidence).
 ``forward`` then applies explicit trainable corrections, zero at the start, so that the base forward is exactly the
 classical result and test-time refinement can move poses and depth:
 
@@ -40,7 +43,7 @@ from vi3_core.backbones._hub import check_clip, resize_crop, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
-from vi3_core.backbones.classical.tracks import track_features
+from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks
 from vi3_core.camera import backproject
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
@@ -104,11 +107,11 @@ class ClassicalBackbone(Backbone):
     """Classical multi-view geometry behind the backbone contract (see the module docstring).
 
     Options (keyword-only): ``max_side`` px, the longest side a frame is worked on at (larger ones are shrunk
-    first); ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120);
-    ``max_features`` tracked corners per frame; ``n_depths``, ``n_sources``, ``best_k``, ``window``: plane-sweep
-    settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly; ``threads``: Python
-    threads that sweep reference frames concurrently (None: torch's intra-op thread count when the clip comes, the
-    process's ``threads`` setting, see ``vi3_core.threads``).
+    first); ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120); ``tracker``: the front end's
+    ``TrackerOptions`` (its ``max_features`` tracked corners per frame); ``n_depths``, ``n_sources``, ``best_k``,
+    ``window``: plane-sweep settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly;
+    ``threads``: Python threads that sweep reference frames concurrently (None: torch's intra-op thread count when
+    the clip comes, the process's ``threads`` setting, see ``vi3_core.threads``).
 
     ``preprocess`` holds torch's intra-op pool at one thread: its OpenMP workers meet at a barrier after every
     operator, and when another process (or the node's executor) takes a core, the waiting worker spins; on the
@@ -126,7 +129,8 @@ class ClassicalBackbone(Backbone):
     ttr_lr = 1e-4
 
     def __init__(self, *, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
-                 max_side: int = 1024, downscale: float = 4.0, max_features: int = 1000, n_depths: int = 24,
+                 max_side: int = 1024, downscale: float = 4.0, tracker: TrackerOptions | None = None,
+                 n_depths: int = 24,
                  n_sources: int = 2, best_k: int = 2, window: int = 7, bundle_adjust: bool = True,
                  threads: int | None = None) -> None:
         super().__init__(device=device, dtype=dtype)
@@ -134,7 +138,7 @@ class ClassicalBackbone(Backbone):
             raise ValueError(f"downscale must be >= 1 and max_side >= 64, got {downscale} and {max_side}")
         self.max_side = max_side
         self.downscale = downscale
-        self.max_features = max_features
+        self.tracker = FrameTracker(tracker)
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
         self.threads = threads
@@ -143,10 +147,16 @@ class ClassicalBackbone(Backbone):
         #: The last clip's inputs (status, reason, diagnostics); its corrections are what ``param_groups`` returns.
         self.last_inputs: ClassicalInputs | None = None
         self._depth_frames: np.ndarray | None = None  # of the clip bound, for its ``preprocess``
+        self._stamps: np.ndarray | None = None  # of the clip bound: the keys of its frames in the tracker
+        # the last clip's structure for the next one's warm start: (its last frame's key, track ids [m], points [m,3]
+        # in that last camera's frame, its SfM scale)
+        self._structure: tuple[float, np.ndarray, np.ndarray] | None = None
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None) -> None:
-        """The frames whose depth is read (the plane sweep runs for those only), for the next ``preprocess`` only."""
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
+        """The clip the next ``preprocess`` sees: its frames' stamps (which of them the front end tracked already)
+        and the frames whose depth is read (the plane sweep runs for those only); not ``continued``: tracked afresh."""
         self._depth_frames = depth_frames
+        self._stamps = None if clip is None or not continued else np.asarray(clip.stamps, np.float64)
 
     @property
     def last_status(self) -> str:
@@ -176,11 +186,55 @@ class ClassicalBackbone(Backbone):
         images [n,3,h,w] and K [n,3,3] at the working resolution (``_hub.resize_crop``)."""
         workers = self.threads or torch.get_num_threads()
         depth_frames, self._depth_frames = self._depth_frames, None
+        stamps, self._stamps = self._stamps, None
         with torch_threads(1):
-            return self._preprocess(images, K, workers, depth_frames)
+            return self._preprocess(images, K, workers, depth_frames, stamps)
+
+    def _track(self, gray: np.ndarray, stamps: np.ndarray | None) -> tuple[Tracks, list[float]]:
+        """The tracks of the clip's frames ``gray`` [n,H,W] and the frames' keys: the frames the front end has not
+        seen are added in order (each frame once); a clip that does not continue the front end's last frame (or comes
+        without stamps: ``predict`` without ``bind``) starts it afresh."""
+        tr = self.tracker
+        if stamps is None or len(stamps) != len(gray):
+            tr.reset()
+            keys = [float(i) for i in range(len(gray))]
+        else:
+            keys = [float(t) for t in stamps]
+        seen = set(tr.keys())
+        done = 0
+        while done < len(keys) and keys[done] in seen:  # the leading frames tracked already (the shared ones)
+            done += 1
+        continues = done > 0 and tr.frame_shape == gray.shape[1:] and \
+            (done == len(keys) or tr.last_key == keys[done - 1])
+        if not continues:
+            tr.reset()
+            self._structure, done = None, 0
+        for key, g in zip(keys[done:], gray[done:]):
+            tr.add(key, g)
+        return tr.tracks(keys), keys
+
+    def _known(self, tracks: Tracks, first_key: float) -> np.ndarray | None:
+        """[m,3] points of ``tracks`` the clip before reconstructed, in this clip's world (its first camera, which was
+        that clip's last), at that clip's SfM scale; None when the clip does not start where that one ended."""
+        kept = self._structure
+        if kept is None or kept[0] != first_key:
+            return None
+        _, ids, points = kept
+        idx = np.clip(np.searchsorted(ids, tracks.ids), 0, max(len(ids) - 1, 0))
+        hit = len(ids) > 0 and (ids[idx] == tracks.ids)
+        return np.where(hit[:, None], points[idx], np.nan) if len(ids) else None
+
+    def _keep_structure(self, sfm, tracks: Tracks, last_key: float) -> None:
+        """The clip's points in its last camera's frame, for the next clip's warm start (none after a failure)."""
+        if not sfm.ok:
+            self._structure = None
+            return
+        R, t = sfm.R_wc[-1], sfm.t_wc[-1]
+        good = np.isfinite(sfm.points[:, 0])
+        self._structure = (last_key, tracks.ids[good], (sfm.points[good] - t) @ R)
 
     def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int,
-                    depth_frames: np.ndarray | None) -> ClassicalInputs:
+                    depth_frames: np.ndarray | None, stamps: np.ndarray | None) -> ClassicalInputs:
         images, K = check_clip(images, K)
         src_hw = images.shape[1:3]
         images, K = _shrunk(images, K, self.max_side)
@@ -192,11 +246,12 @@ class ClassicalBackbone(Backbone):
 
         timings = {}
         t0 = time.perf_counter()
-        tracks = track_features(gray, max_features=self.max_features)
+        tracks, keys = self._track(gray, stamps)
         timings["tracks_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        sfm = estimate_poses(tracks, K, bundle_adjust=self.bundle_adjust)
+        sfm = estimate_poses(tracks, K, known=self._known(tracks, keys[0]), bundle_adjust=self.bundle_adjust)
         timings["sfm_s"] = time.perf_counter() - t0
+        self._keep_structure(sfm, tracks, keys[-1])
 
         t_wc = sfm.t_wc
         depth, conf = np.ones((n, h, w), np.float32), np.zeros((n, h, w), np.float32)

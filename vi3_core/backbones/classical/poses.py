@@ -1,9 +1,13 @@
 """Up-to-scale camera poses and sparse points of a clip from feature tracks (structure from motion).
 
 Steps: an essential matrix (RANSAC) between frame 0 and the frame with the most parallax fixes the first
-up-to-scale baseline; its inlier tracks are triangulated; every other frame is registered against those points
-by PnP (RANSAC); all tracks are then triangulated from every view that sees them (linear DLT) and poses and
-points are refined together by a small bundle adjustment (``bundle.py``).
+up-to-scale baseline; its inlier tracks are triangulated; every other frame is registered in order by PnP (RANSAC)
+against the points so far, each adding the points of the tracks it is the second posed view of (incremental, so a
+camera that turns away from frame 0's view keeps points to register on); all tracks are then triangulated from
+every view that sees them (linear DLT) and poses and points are refined together by a small bundle adjustment
+(``bundle.py``). A clip that continues the tracks of the clip before it starts from that clip's points instead
+(``known``: the structure its shared first frame saw, in this clip's world; no essential matrix), and falls back to
+the two-view start where those points do not carry its frames.
 
 World = first camera (OpenCV axes), poses camera-to-world. The scale is whatever the first baseline gave; the
 caller normalises it. Degenerate clips are reported, never forced: no common tracks -> ``few_features``; image
@@ -96,6 +100,18 @@ def _clean_points(points: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc:
     return np.where(good[:, None], points, np.nan)
 
 
+def _kept(points: np.ndarray, carried: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray,
+          t_wc: np.ndarray, K: np.ndarray, *, max_reproj_px: float, min_angle_deg: float) -> np.ndarray:
+    """``_clean_points``, except that a ``carried`` [m] point (from the clip before) needs no angle between its rays
+    in this clip: its depth came from that clip's."""
+    strict = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px,
+                           min_angle_deg=min_angle_deg)
+    if not carried.any():
+        return strict
+    loose = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px, min_angle_deg=0.0)
+    return np.where(carried[:, None], loose, strict)
+
+
 def _rotation_only(uv: np.ndarray, visible: np.ndarray, K: np.ndarray) -> np.ndarray:
     """R_wc [n,3,3] of a purely rotating camera: Kabsch fit of each frame's bearings to frame 0's."""
     n = uv.shape[1]
@@ -109,10 +125,57 @@ def _rotation_only(uv: np.ndarray, visible: np.ndarray, K: np.ndarray) -> np.nda
     return np.einsum("nji,nj,nkj->nik", Vt, D, U)
 
 
-def estimate_poses(tracks: Tracks, K: np.ndarray, *, stationary_px: float = 0.5, min_parallax_px: float = 1.0,
-                   min_tracks: int = 30, ransac_px: float = 1.0, max_reproj_px: float = 3.0,
-                   min_angle_deg: float = 0.3, bundle_adjust: bool = True, ba_iterations: int = 20) -> SfmResult:
-    """Structure from motion over the clip (see the module docstring). ``K`` [3,3] of the tracked images."""
+def _two_view(uv: np.ndarray, visible: np.ndarray, K: np.ndarray, j: int, R_wc: np.ndarray, t_wc: np.ndarray, *,
+              ransac_px: float, max_reproj_px: float, min_angle_deg: float) -> np.ndarray | None:
+    """The first baseline: frame j's pose from the essential matrix (RANSAC) against frame 0, written into R_wc[j],
+    t_wc[j]; returns its inlier tracks triangulated and cleaned [m,3] (NaN elsewhere), None when E fails."""
+    pair = visible[:, 0] & visible[:, j]
+    E, mask = cv2.findEssentialMat(uv[pair, 0], uv[pair, j], K, method=cv2.RANSAC, prob=0.999, threshold=ransac_px)
+    if E is None or E.shape != (3, 3):
+        return None
+    _, R_cw, t_cw, mask = cv2.recoverPose(E, uv[pair, 0], uv[pair, j], K, mask=mask)
+    R_wc[j], t_wc[j] = R_cw.T, -(R_cw.T @ t_cw).ravel()
+    inliers = np.flatnonzero(pair)[mask.ravel() > 0]
+    init_vis = np.zeros_like(visible)
+    init_vis[inliers, 0] = init_vis[inliers, j] = True
+    return _clean_points(triangulate(uv, init_vis, R_wc, t_wc, K), uv, init_vis, R_wc, t_wc, K,
+                         max_reproj_px=max_reproj_px, min_angle_deg=min_angle_deg)
+
+
+def _register(uv: np.ndarray, visible: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
+              points: np.ndarray, posed: list[int], *, ransac_px: float, clean: dict) -> str | None:
+    """Every frame not in ``posed`` registered in order by PnP (RANSAC) against ``points`` [m,3] (NaN: none yet),
+    its pose written into R_wc, t_wc [n,...]; after each, the tracks seen by two posed frames that have no point yet
+    are triangulated into ``points`` (incremental: a frame whose view has turned away from the first frame's still
+    sees the points its neighbours made). Returns why it failed, or None."""
+    is_posed = np.zeros(uv.shape[1], bool)
+    is_posed[posed] = True
+    for i in np.flatnonzero(~is_posed):
+        sel = visible[:, i] & np.isfinite(points[:, 0])
+        if sel.sum() < 6:
+            return f"frame {i} sees only {sel.sum()} triangulated points (need 6)"
+        ok, rvec, tvec, _ = cv2.solvePnPRansac(points[sel], uv[sel, i], K, None, reprojectionError=2 * ransac_px,
+                                               iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
+        if not ok:
+            return f"PnP failed for frame {i}"
+        R_i = cv2.Rodrigues(rvec)[0]
+        R_wc[i], t_wc[i] = R_i.T, -(R_i.T @ tvec).ravel()
+        is_posed[i] = True
+        seen = visible & is_posed
+        new = ~np.isfinite(points[:, 0]) & (seen.sum(1) >= 2) & seen[:, i]
+        if new.any():
+            points[new] = _clean_points(triangulate(uv[new], seen[new], R_wc, t_wc, K), uv[new], seen[new], R_wc,
+                                        t_wc, K, **clean)
+    return None
+
+
+def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = None, stationary_px: float = 0.5,
+                   min_parallax_px: float = 1.0, min_tracks: int = 30, ransac_px: float = 1.0,
+                   max_reproj_px: float = 3.0, min_angle_deg: float = 0.3, bundle_adjust: bool = True,
+                   ba_iterations: int = 20) -> SfmResult:
+    """Structure from motion over the clip (see the module docstring). ``K`` [3,3] of the tracked images; ``known``
+    [m,3]: points of the tracks (NaN where unknown) from the clip before, in this clip's world, used in place of a
+    two-view start when at least ``min_tracks`` of them are seen in the first frame."""
     uv, visible = tracks.uv, tracks.visible
     n = uv.shape[1]
     eye, zero = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
@@ -139,48 +202,43 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, stationary_px: float = 0.5,
                         for j in range(n)])
     j = int(np.argmax(med_par))
     diag = {"tracks": len(uv), "median_flow_px": float(med_flow.max()), "parallax_px": float(med_par[j])}
-    if med_par[j] < min_parallax_px:
+    clean = dict(max_reproj_px=max_reproj_px, min_angle_deg=min_angle_deg)
+    failed = "no structure from the clip before"
+    carried = np.full((len(uv), 3), np.nan)
+    if known is not None and int((np.isfinite(known[:, 0]) & visible[:, 0]).sum()) >= min_tracks:
+        # the clip before's points already have depth: PnP needs no parallax of this clip's own
+        R_wc, t_wc = eye.copy(), zero.copy()
+        carried = np.where(visible[:, :1], known, np.nan)
+        points = carried.copy()
+        diag["initial_points"] = int(np.isfinite(points[:, 0]).sum())
+        failed = _register(uv, visible, K, R_wc, t_wc, points, [0], ransac_px=ransac_px, clean=clean)
+    diag["warm_start"] = failed is None
+    if failed is not None and med_par[j] < min_parallax_px:
         return SfmResult(R_rot, zero, nan_points, NO_PARALLAX,
                          f"image motion is a rotation only (median parallax {med_par[j]:.2f} px < "
                          f"{min_parallax_px} px): translation and depth unobservable", diag)
-    pair = visible[:, 0] & visible[:, j]
-    E, mask = cv2.findEssentialMat(uv[pair, 0], uv[pair, j], K, method=cv2.RANSAC, prob=0.999, threshold=ransac_px)
-    if E is None or E.shape != (3, 3):
-        return SfmResult(R_rot, zero, nan_points, NO_PARALLAX, "essential matrix estimation failed", diag)
-    _, R_cw, t_cw, mask = cv2.recoverPose(E, uv[pair, 0], uv[pair, j], K, mask=mask)
-    R_wc, t_wc = eye.copy(), zero.copy()
-    R_wc[j], t_wc[j] = R_cw.T, -(R_cw.T @ t_cw).ravel()
-    inliers = np.flatnonzero(pair)[mask.ravel() > 0]
-    init_vis = np.zeros_like(visible)
-    init_vis[inliers, 0] = init_vis[inliers, j] = True
-    points = _clean_points(triangulate(uv, init_vis, R_wc, t_wc, K), uv, init_vis, R_wc, t_wc, K,
-                           max_reproj_px=max_reproj_px, min_angle_deg=min_angle_deg)
-    diag["initial_points"] = int(np.isfinite(points[:, 0]).sum())
-    if diag["initial_points"] < min_tracks:
-        return SfmResult(R_rot, zero, nan_points, NO_PARALLAX,
-                         f"two-view reconstruction of frames 0 and {j} too weak: {diag['initial_points']} points "
-                         f"triangulated with rays >= {min_angle_deg} deg apart (need {min_tracks}; median parallax "
-                         f"{med_par[j]:.2f} px): translation and depth unobservable", diag)
-    # Register every other frame against the initial structure (PnP inside RANSAC).
-    for i in range(1, n):
-        if i == j:
-            continue
-        sel = visible[:, i] & np.isfinite(points[:, 0])
-        if sel.sum() < 6:
-            return SfmResult(R_rot, zero, nan_points, FEW_FEATURES,
-                             f"frame {i} sees only {sel.sum()} triangulated points (need 6)", diag)
-        ok, rvec, tvec, _ = cv2.solvePnPRansac(points[sel], uv[sel, i], K, None, reprojectionError=2 * ransac_px,
-                                               iterationsCount=200, flags=cv2.SOLVEPNP_EPNP)
-        if not ok:
-            return SfmResult(R_rot, zero, nan_points, FEW_FEATURES, f"PnP failed for frame {i}", diag)
-        R_i = cv2.Rodrigues(rvec)[0]
-        R_wc[i], t_wc[i] = R_i.T, -(R_i.T @ tvec).ravel()
-    points = _clean_points(triangulate(uv, visible, R_wc, t_wc, K), uv, visible, R_wc, t_wc, K,
-                           max_reproj_px=max_reproj_px, min_angle_deg=min_angle_deg)
+    if failed is not None:  # no warm start, or it lost the structure: the two-view start of the clip's own
+        R_wc, t_wc = eye.copy(), zero.copy()
+        points = _two_view(uv, visible, K, j, R_wc, t_wc, ransac_px=ransac_px, **clean)
+        if points is None:
+            return SfmResult(R_rot, zero, nan_points, NO_PARALLAX, "essential matrix estimation failed", diag)
+        diag["initial_points"] = int(np.isfinite(points[:, 0]).sum())
+        if diag["initial_points"] < min_tracks:
+            return SfmResult(R_rot, zero, nan_points, NO_PARALLAX,
+                             f"two-view reconstruction of frames 0 and {j} too weak: {diag['initial_points']} points "
+                             f"triangulated with rays >= {min_angle_deg} deg apart (need {min_tracks}; median "
+                             f"parallax {med_par[j]:.2f} px): translation and depth unobservable", diag)
+        failed = _register(uv, visible, K, R_wc, t_wc, points, [0, j], ransac_px=ransac_px, clean=clean)
+        if failed is not None:
+            return SfmResult(R_rot, zero, nan_points, FEW_FEATURES, failed, diag)
+    # a carried point whose rays in this clip meet at too small an angle keeps the depth the clip before gave it
+    was_carried = np.isfinite(carried[:, 0]) if diag["warm_start"] else np.zeros(len(uv), bool)
+    points = triangulate(uv, visible, R_wc, t_wc, K)
+    points = _kept(np.where(np.isfinite(points[:, :1]), points, carried), was_carried, uv, visible, R_wc, t_wc, K,
+                   **clean)
     if bundle_adjust:
         R_wc, t_wc, points = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations)
-        points = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px,
-                               min_angle_deg=min_angle_deg)
+        points = _kept(points, was_carried, uv, visible, R_wc, t_wc, K, **clean)
     good = np.isfinite(points[:, 0])
     proj, _ = project(points[good], R_wc, t_wc, K)
     err = np.linalg.norm(proj - uv[good], axis=-1)[visible[good]]

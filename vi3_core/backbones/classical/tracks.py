@@ -1,23 +1,38 @@
-"""Feature tracks through a clip: Shi-Tomasi corners followed frame to frame by pyramidal Lucas-Kanade (OpenCV).
+"""Feature tracks across a stream of frames, each frame tracked once as it arrives (a visual-inertial front end).
 
-A forward-backward check drops tracks whose round trip misses its start, and fresh corners are detected in
-every frame but the last (a corner seen once constrains nothing) away from the live tracks, so a track may start late
-but never resumes after it is lost.
+``FrameTracker.add`` follows the live corners from the previous frame into the new one with pyramidal Lucas-Kanade
+(OpenCV), checks each against the flow back to where it came from (forward-backward) and against the epipolar
+geometry of the pair (a fundamental matrix by RANSAC), and tops the live set up to its budget with FAST corners on a
+grid: each cell of the frame holds its share, new corners only where no live track is near, so a track is never
+re-detected on top of itself and texture-poor regions keep what corners they have. ``tracks(keys)`` reads the tracks
+of any run of consecutive frames still in its history (a clip): a clip that starts with the last frame of the one
+before continues its tracks, so the frames two clips share are tracked once and seen by the same tracks in both.
+
+What the field's front ends do (VINS-Mono: 150 features, 30 px apart, fundamental-matrix RANSAC; OpenVINS: FAST on a
+grid, KLT; Basalt: patches on a grid), on one thread: a 752x480 frame costs a few milliseconds, the Lucas-Kanade
+passes most of it (OpenCV 5.1's Python binding takes no prebuilt pyramid, so each call builds its own).
 """
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+FAST_MIN, FAST_MAX = 5, 60  # the range the FAST threshold follows the scene in
+MASK_PX = 4  # side of the squares the detection mask is drawn on
+
 
 @dataclass(frozen=True)
 class Tracks:
-    """uv: [m,n,2] float64 pixel positions (x right, y down) of m tracks in the n frames, NaN where unseen."""
+    """uv: [m,n,2] float64 pixel positions (x right, y down) of m tracks in the n frames, NaN where unseen; ids: [m]
+    the tracks' identities in their ``FrameTracker`` (a track keeps its id from clip to clip)."""
 
     uv: np.ndarray
+    ids: np.ndarray
 
     @property
     def visible(self) -> np.ndarray:
@@ -28,50 +43,175 @@ class Tracks:
         return len(self.uv)
 
 
-def _detect(gray: np.ndarray, live: np.ndarray, *, count: int, min_distance: int, quality: float) -> np.ndarray:
-    """[k,2] new corners of ``gray`` at least ``min_distance`` px from the live points [l,2]."""
-    if count <= 0:
-        return np.zeros((0, 2))
-    mask = np.full(gray.shape, 255, np.uint8)
-    for x, y in np.round(live).astype(int):  # one small disc per live track (OpenCV draw call, not pixel work)
-        cv2.circle(mask, (int(x), int(y)), min_distance, 0, -1)
-    pts = cv2.goodFeaturesToTrack(gray, maxCorners=count, qualityLevel=quality, minDistance=min_distance,
-                                  mask=mask, blockSize=7)
-    return np.zeros((0, 2)) if pts is None else pts.reshape(-1, 2).astype(np.float64)
+@dataclass(frozen=True)
+class TrackerOptions:
+    """max_features: live tracks per frame (the budget the grid tops up to); grid: (columns, rows) of cells that share
+    the budget; min_distance: px between a new corner and any live track; fast_threshold: FAST's intensity
+    threshold at the start (it then follows the scene: up when a frame gives many times the corners it needs, down to
+    ``FAST_MIN`` when it gives too few, as plain walls do); window: Lucas-Kanade's window side, px; levels: its
+    pyramid levels above the frame; fb_threshold_px: the most a track's backward flow may miss its start; ransac_px:
+    the epipolar distance (px) of a pair's inliers; history: frames whose tracks are kept for ``tracks``."""
+
+    max_features: int = 500
+    grid: tuple[int, int] = (8, 5)
+    min_distance: int = 12
+    fast_threshold: int = 10
+    window: int = 11
+    levels: int = 3
+    fb_threshold_px: float = 1.0
+    ransac_px: float = 1.0
+    history: int = 32
+
+    def __post_init__(self) -> None:
+        if not (self.max_features > 0 and min(self.grid) > 0 and self.window >= 3 and self.levels >= 0
+                and self.fb_threshold_px > 0 and self.ransac_px > 0 and self.history >= 2):
+            raise ValueError(f"TrackerOptions: invalid values in {self}")
 
 
-def track_features(gray: np.ndarray, *, max_features: int = 1000, min_distance: int = 10,
-                   quality: float = 0.005, fb_threshold_px: float = 1.0, window: int = 21,
-                   levels: int = 3) -> Tracks:
-    """Track corners through ``gray`` [n,H,W] uint8.
+class FrameTracker:
+    """Tracks of a stream of frames (see the module docstring). Not thread-safe: one caller adds frames in order.
 
-    Each frame keeps up to ``max_features`` live tracks; a track is dropped when the backward flow misses its
-    start by more than ``fb_threshold_px`` or leaves the image.
-    """
-    n, H, W = gray.shape
-    lk = dict(winSize=(window, window), maxLevel=levels,
-              criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    start = _detect(gray[0], np.zeros((0, 2)), count=max_features, min_distance=min_distance, quality=quality)
-    live_idx = np.arange(len(start))
-    rows = np.full((len(start), n, 2), np.nan)
-    rows[:, 0] = start
-    for i in range(1, n):
-        prev = rows[live_idx, i - 1].astype(np.float32).reshape(-1, 1, 2)
-        if len(prev):
-            nxt, st, _ = cv2.calcOpticalFlowPyrLK(gray[i - 1], gray[i], prev, None, **lk)
-            back, st_b, _ = cv2.calcOpticalFlowPyrLK(gray[i], gray[i - 1], nxt, None, **lk)
-            nxt, fb = nxt.reshape(-1, 2), np.linalg.norm(back.reshape(-1, 2) - prev.reshape(-1, 2), axis=1)
-            ok = (st.ravel() == 1) & (st_b.ravel() == 1) & (fb < fb_threshold_px)
-            ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
-            rows[live_idx[ok], i] = nxt[ok]
-            live_idx = live_idx[ok]
-        if i == n - 1:
-            break
-        fresh = _detect(gray[i], rows[live_idx, i], count=max_features - len(live_idx),
-                        min_distance=min_distance, quality=quality)
-        if len(fresh):
-            block = np.full((len(fresh), n, 2), np.nan)
-            block[:, i] = fresh
-            live_idx = np.concatenate([live_idx, np.arange(len(rows), len(rows) + len(fresh))])
-            rows = np.concatenate([rows, block])
-    return Tracks(uv=rows)
+    ``add(key, gray)``: the next frame, ``key`` its stamp (increasing), gray [H,W] uint8; ``tracks(keys)``: the tracks
+    of those frames (consecutive, all still in the history); ``reset()`` forgets everything (time went back, frames
+    were skipped). ``last_key``: the newest frame's key (None after a reset)."""
+
+    def __init__(self, options: TrackerOptions | None = None) -> None:
+        self.options = options or TrackerOptions()
+        self._fast = cv2.FastFeatureDetector_create(threshold=self.options.fast_threshold, nonmaxSuppression=True)
+        self.reset()
+
+    def reset(self) -> None:
+        self._fast.setThreshold(self.options.fast_threshold)
+        self._frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=self.options.history)
+        self._gray: np.ndarray | None = None
+        self._ids = np.zeros(0, np.int64)
+        self._pts = np.zeros((0, 2), np.float32)
+        self._next_id = 0
+        self._square_cells: np.ndarray | None = None  # [h,w] the grid cell of each square of the detection mask
+
+    @property
+    def frame_shape(self) -> tuple[int, ...] | None:
+        """(H, W) of the frames tracked since the last reset (None before the first)."""
+        return None if self._gray is None else self._gray.shape
+
+    @property
+    def last_key(self) -> float | None:
+        return self._frames[-1][0] if self._frames else None
+
+    def keys(self) -> list[float]:
+        """The keys of the frames in the history, oldest first."""
+        return [k for k, _, _ in self._frames]
+
+    def add(self, key: float, gray: np.ndarray) -> None:
+        if self._gray is not None and self._gray.shape != gray.shape:
+            raise ValueError(f"frame of {gray.shape} after frames of {self._gray.shape}: reset the tracker first")
+        if len(self._pts):
+            self._follow(gray)
+        self._top_up(gray)
+        self._gray = gray
+        self._frames.append((float(key), self._ids.copy(), self._pts.astype(np.float64)))
+
+    def _follow(self, gray: np.ndarray) -> None:
+        """The live tracks into ``gray``: forward and backward flow, the round trip within ``fb_threshold_px``, inside
+        the frame, and inliers of the pair's epipolar geometry."""
+        o = self.options
+        lk = dict(winSize=(o.window, o.window), maxLevel=o.levels,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03))
+        prev = self._pts.reshape(-1, 1, 2)
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._gray, gray, prev, None, **lk)
+        # the way back starts where the track came from and searches one pyramid level (VINS-Fusion's reverse
+        # check): a consistent track needs no search, and the backward pass costs half the forward one
+        back, st_b, _ = cv2.calcOpticalFlowPyrLK(gray, self._gray, nxt, prev.copy(), flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                                                 **{**lk, "maxLevel": min(o.levels, 1)})
+        nxt, back = nxt.reshape(-1, 2), back.reshape(-1, 2)
+        H, W = gray.shape
+        ok = (st.ravel() == 1) & (st_b.ravel() == 1)
+        ok &= np.linalg.norm(back - self._pts, axis=1) < o.fb_threshold_px
+        ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
+        if ok.sum() >= 16:  # epipolar outliers of the pair (a track that slid along an edge, or onto another)
+            _, inl = cv2.findFundamentalMat(self._pts[ok], nxt[ok], cv2.FM_RANSAC, o.ransac_px, 0.99)
+            if inl is not None:
+                ok[np.flatnonzero(ok)[inl.ravel() == 0]] = False
+        self._ids, self._pts = self._ids[ok], nxt[ok].astype(np.float32)
+
+    def _top_up(self, gray: np.ndarray) -> None:
+        """New FAST corners in the grid's cells that hold fewer than their share of the budget (detected there only),
+        the strongest first, none within ``min_distance`` of a live track or of another new one."""
+        o = self.options
+        need = o.max_features - len(self._pts)
+        if need <= 0:
+            return
+        H, W = gray.shape
+        cols, rows = o.grid
+        have = np.bincount(cell_of(self._pts, W, H, cols, rows), minlength=cols * rows)
+        quota = np.maximum(-(-o.max_features // (cols * rows)) - have, 0)
+        if not quota.any():
+            return
+        kps = self._fast.detect(gray, self._free(quota, H, W))
+        # the next frame's threshold: a textured scene gives thousands of corners where tens are needed
+        t = self._fast.getThreshold()
+        self._fast.setThreshold(int(min(t + 2, FAST_MAX) if len(kps) > 8 * need else
+                                    max(t - 2, FAST_MIN) if len(kps) < 2 * need else t))
+        if not kps:
+            return
+        xy = cv2.KeyPoint_convert(kps).astype(np.float32)
+        score = np.fromiter((k.response for k in kps), np.float32, len(kps))
+        # one corner per min_distance square (its strongest), then each cell's strongest up to its quota
+        d = max(o.min_distance, 1)
+        square = (xy[:, 1] // d).astype(np.int64) * (W // d + 1) + (xy[:, 0] // d).astype(np.int64)
+        order = np.lexsort((-score, square))
+        order = order[np.r_[True, square[order][1:] != square[order][:-1]]]
+        cell = cell_of(xy, W, H, cols, rows)
+        order = order[np.lexsort((-score[order], cell[order]))]
+        c = cell[order]
+        rank = np.arange(len(order)) - np.searchsorted(c, c)  # position within its cell, strongest first
+        take = order[rank < quota[c]]
+        take = take[np.argsort(-score[take])][:need]
+        if len(take):
+            self._pts = np.concatenate([self._pts, xy[take]])
+            self._ids = np.concatenate([self._ids, self._next_id + np.arange(len(take))])
+            self._next_id += len(take)
+
+    def _free(self, quota: np.ndarray, H: int, W: int) -> np.ndarray:
+        """[H,W] uint8 mask (255: FAST may look there) of the cells with a ``quota`` [cells] left, less a disc of
+        ``min_distance`` around every live track; drawn on a grid of ``MASK_PX`` px squares, so that a corner is
+        never within min_distance of a live track and rarely more than MASK_PX further than that."""
+        o, s = self.options, MASK_PX
+        h, w = -(-H // s), -(-W // s)
+        occupied = np.zeros((h, w), np.uint8)
+        ij = np.minimum((self._pts // s).astype(np.int64), [w - 1, h - 1])
+        occupied[ij[:, 1], ij[:, 0]] = 1
+        r = -(-o.min_distance // s)
+        occupied = cv2.dilate(occupied, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        if self._square_cells is None or self._square_cells.shape != (h, w):  # once per frame size
+            centres = (np.indices((h, w)).transpose(1, 2, 0)[..., ::-1].reshape(-1, 2) + 0.5) * s
+            self._square_cells = cell_of(centres, W, H, *o.grid).reshape(h, w)
+        wanted = quota[self._square_cells] > 0
+        free = (wanted & (occupied == 0)).astype(np.uint8) * 255
+        return cv2.resize(free, (w * s, h * s), interpolation=cv2.INTER_NEAREST)[:H, :W]
+
+    def tracks(self, keys: Sequence[float]) -> Tracks:
+        """The tracks of the frames ``keys`` (consecutive frames of the history, in order): [m, n, 2] for every
+        track seen in at least one of them. Raises KeyError for a frame not in the history."""
+        index = {k: i for i, (k, _, _) in enumerate(self._frames)}
+        frames = [self._frames[index[float(k)]] for k in keys]
+        ids = np.unique(np.concatenate([f[1] for f in frames])) if frames else np.zeros(0, np.int64)
+        uv = np.full((len(ids), len(frames), 2), np.nan)
+        for j, (_, fid, pts) in enumerate(frames):
+            uv[np.searchsorted(ids, fid), j] = pts
+        return Tracks(uv=uv, ids=ids)
+
+
+def cell_of(pts: np.ndarray, W: int, H: int, cols: int, rows: int) -> np.ndarray:
+    """[k] grid cell (row-major) of each point [k,2] of a W x H frame cut into cols x rows cells of ceil(H / rows)
+    by ceil(W / cols) px."""
+    return (np.minimum(pts[:, 1] // -(-H // rows), rows - 1).astype(int) * cols
+            + np.minimum(pts[:, 0] // -(-W // cols), cols - 1).astype(int))
+
+
+def track_features(gray: np.ndarray, *, options: TrackerOptions | None = None) -> Tracks:
+    """The tracks of a clip's frames ``gray`` [n,H,W] uint8 tracked on their own (a fresh ``FrameTracker``)."""
+    tracker = FrameTracker(options)
+    for i, g in enumerate(gray):
+        tracker.add(float(i), g)
+    return tracker.tracks([float(i) for i in range(len(gray))])

@@ -1,0 +1,219 @@
+"""The ``classical`` backbone's front end (``tracks.FrameTracker``) and the structure from motion that carries its
+tracks from clip to clip: each frame tracked once, tracks carried across clips, corners on a grid to a budget, the
+forward-backward check, the warm start and the incremental registration, and ``vi3 bench tracker``."""
+
+from __future__ import annotations
+
+import argparse
+
+import cv2
+import numpy as np
+import pytest
+
+from vi3_core import so3
+from vi3_core.backbones.classical import ClassicalBackbone
+from vi3_core.backbones.classical.bench import bench_tracker
+from vi3_core.backbones.classical.poses import OK, estimate_poses
+from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks, cell_of, track_features
+from vi3_core.dataset.asl import read_asl
+from vi3_core.dataset.generate import cached_sequence
+from vi3_core.dataset.sequence import gt_camera_poses, make_clip
+
+
+@pytest.fixture(scope="module")
+def room(cache_dir):
+    return read_asl(cached_sequence(cache_dir, seconds=4.0, seed=0) / "mav0")
+
+
+@pytest.fixture(scope="module")
+def stream(room):
+    """Two sliding clips of the room sharing one frame (stride 2, as the node's clips), as undistorted grey frames
+    with their ground-truth camera poses in the first clip's first camera."""
+    idx = np.arange(0, 30, 2)
+    clip = make_clip(room, idx)
+    gray = np.stack([im if im.ndim == 2 else cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in clip.images])
+    return clip, gray, gt_camera_poses(clip.gt, clip.T_BC)
+
+
+def test_each_frame_is_tracked_once_and_a_clip_continues_the_tracks_of_the_one_before(stream):
+    _, gray, _ = stream
+    tracker = FrameTracker()
+    for i in range(8):
+        tracker.add(float(i), gray[i])
+    first = tracker.tracks([float(i) for i in range(8)])
+    for i in range(8, 15):
+        tracker.add(float(i), gray[i])
+    second = tracker.tracks([float(i) for i in range(7, 15)])
+    # the shared frame (7) is read, not tracked again: the same tracks at the same positions in both clips
+    a = first.visible[:, -1]
+    common, ia, ib = np.intersect1d(first.ids[a], second.ids[second.visible[:, 0]], return_indices=True)
+    assert len(common) == a.sum() == second.visible[:, 0].sum() > 100
+    np.testing.assert_array_equal(first.uv[a][ia, -1], second.uv[second.visible[:, 0]][ib, 0])
+    # some tracks last the two clips whole: they were carried, not detected again
+    assert np.isin(first.ids[first.visible[:, 0]], second.ids[second.visible[:, -1]]).sum() > 20
+    assert tracker.keys() == [float(i) for i in range(15)] and tracker.last_key == 14.0
+    with pytest.raises(KeyError):
+        tracker.tracks([20.0])
+
+
+def test_tracks_fit_the_true_geometry_to_a_fraction_of_a_pixel(stream):
+    """Every track of a clip triangulated from the true poses reprojects within a fraction of a pixel (the render's
+    images: sub-pixel LK, no drift along an edge that the forward-backward and epipolar checks let through)."""
+    clip, gray, T = stream
+    tracks = track_features(gray[:8])
+    K = clip.K
+    P = np.stack([K @ so3.inv_T(t)[:3] for t in T[:8]])
+    uv, vis = tracks.uv, tracks.visible
+    long = vis.sum(1) >= 4
+    u, v = uv[long, :, :1], uv[long, :, 1:]
+    seen = np.concatenate([vis[long], vis[long]], axis=1)[..., None]
+    A = np.concatenate([u * P[None, :, 2] - P[None, :, 0], v * P[None, :, 2] - P[None, :, 1]], axis=1) * seen
+    X = np.linalg.svd(np.nan_to_num(A))[2][:, -1]
+    proj = np.einsum("nij,mj->mni", P, X)
+    err = np.linalg.norm(proj[..., :2] / proj[..., 2:] - uv[long], axis=-1)[vis[long]]
+    assert long.sum() > 100
+    assert np.median(err) < 0.25 and np.percentile(err, 95) < 1.0, (np.median(err), np.percentile(err, 95))
+
+
+def test_corners_top_up_on_a_grid_to_the_budget_never_near_a_live_track(stream):
+    _, gray, _ = stream
+    options = TrackerOptions(max_features=200, grid=(4, 3), min_distance=15)
+    tracker = FrameTracker(options)
+    for i in range(6):
+        live_before = tracker._pts.copy()
+        tracker.add(float(i), gray[i])
+        pts, ids = tracker._pts, tracker._ids
+        assert len(pts) <= options.max_features and len(np.unique(ids)) == len(ids)
+        new = ids >= (ids.max() + 1 - (len(pts) - len(live_before))) if i else np.ones(len(ids), bool)
+        kept = pts[~new]
+        if kept.size and new.any():
+            d = np.linalg.norm(pts[new][:, None] - kept[None], axis=-1).min(1)
+            assert d.min() >= options.min_distance
+    H, W = gray.shape[1:]
+    cells = np.bincount(cell_of(tracker._pts, W, H, *options.grid), minlength=12)
+    assert len(tracker._pts) >= 0.8 * options.max_features and cells.min() > 0  # every cell of a textured room
+
+
+def test_a_track_that_lands_on_other_texture_is_dropped(stream):
+    """The forward-backward check: where the next frame shows something else (a patch replaced), tracks there end
+    instead of latching onto it."""
+    _, gray, _ = stream
+    tracker = FrameTracker()
+    tracker.add(0.0, gray[0])
+    before = tracker.tracks([0.0])
+    H, W = gray.shape[1:]
+    swapped = gray[0].copy()
+    swapped[:, : W // 2] = np.flipud(np.fliplr(gray[0][:, : W // 2]))
+    tracker.add(1.0, swapped)
+    pair = tracker.tracks([0.0, 1.0])
+    left = before.uv[:, 0, 0] < W // 2 - 20
+    right = before.uv[:, 0, 0] > W // 2 + 20
+    kept = np.isin(before.ids, pair.ids[pair.visible[:, 1]])
+    assert kept[right].mean() > 0.9 and kept[left].mean() < 0.1
+
+
+def test_reset_forgets_and_a_frame_of_another_size_is_refused(stream):
+    _, gray, _ = stream
+    tracker = FrameTracker()
+    tracker.add(0.0, gray[0])
+    with pytest.raises(ValueError, match="reset the tracker"):
+        tracker.add(1.0, gray[1][:100])
+    tracker.reset()
+    assert tracker.last_key is None and tracker.keys() == [] and tracker.frame_shape is None
+    tracker.add(5.0, gray[1][:100])
+    assert tracker.frame_shape == (100, gray.shape[2])
+    with pytest.raises(ValueError, match="TrackerOptions"):
+        TrackerOptions(max_features=0)
+
+
+def _turning_tracks(n: int = 8, deg_per_frame: float = 9.0, seed: int = 0) -> tuple[Tracks, np.ndarray, np.ndarray,
+                                                                                     np.ndarray]:
+    """Tracks of a camera that turns ``deg_per_frame`` about its y axis while it moves sideways through a cloud of
+    points, a 56 deg field of view: the last frame sees none of the points the first saw. Returns tracks, K, the true
+    R_wc [n,3,3], t_wc [n,3], and the points [m,3]."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    ang = np.radians(deg_per_frame) * np.arange(n)
+    R_wc = np.stack([so3.exp(np.array([0.0, a, 0.0])) for a in ang])
+    t_wc = np.column_stack([0.05 * np.arange(n), np.zeros(n), np.zeros(n)])
+    az = rng.uniform(-0.6, 0.6 + ang[-1], 4000)
+    r = rng.uniform(3.0, 6.0, 4000)
+    X = np.column_stack([r * np.sin(az), rng.uniform(-1.5, 1.5, 4000), r * np.cos(az)])
+    Xc = np.einsum("nji,nmj->nmi", R_wc, X[None] - t_wc[:, None])  # camera frames [n,m,3]
+    uv = Xc[..., :2] / Xc[..., 2:] * 600.0 + [320, 240]
+    vis = (Xc[..., 2] > 0.1) & (uv[..., 0] >= 0) & (uv[..., 0] < 640) & (uv[..., 1] >= 0) & (uv[..., 1] < 480)
+    uv = np.where(vis[..., None], uv + rng.normal(scale=0.2, size=uv.shape), np.nan).transpose(1, 0, 2)
+    keep = vis.sum(0) >= 2
+    return Tracks(uv=uv[keep], ids=np.flatnonzero(keep)), K, R_wc, t_wc
+
+
+def test_a_camera_that_turns_away_from_the_first_view_is_registered_incrementally():
+    """Cold (two-view start) and warm (the clip before's points of the first frame, at its scale x 2.5): every
+    frame is posed although the last sees none of the first frame's points."""
+    tracks, K, R_true, t_true = _turning_tracks()
+    assert not (tracks.visible[:, 0] & tracks.visible[:, -1]).any()
+    X_true = _true_points(tracks, K, R_true, t_true)
+    for warm in (False, True):
+        known = np.where(tracks.visible[:, :1], 2.5 * ((X_true - t_true[0]) @ R_true[0]), np.nan) if warm else None
+        sfm = estimate_poses(tracks, K, known=known)
+        assert sfm.status == OK, sfm.reason
+        assert sfm.diagnostics["warm_start"] is warm
+        err = [np.degrees(np.linalg.norm(so3.log(R_true[i].T @ sfm.R_wc[i]))) for i in range(len(R_true))]
+        assert max(err) < 0.3, err
+        scale = np.linalg.norm(sfm.t_wc[-1]) / np.linalg.norm(t_true[-1])
+        np.testing.assert_allclose(sfm.t_wc / scale, t_true, atol=0.01)
+        if warm:
+            assert scale == pytest.approx(2.5, rel=0.02)  # the clip before's scale: its structure started this one
+
+
+def _true_points(tracks: Tracks, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray) -> np.ndarray:
+    """[m,3] world points of ``tracks`` triangulated from the true poses."""
+    from vi3_core.backbones.classical.poses import triangulate
+    return triangulate(tracks.uv, tracks.visible, R_wc, t_wc, K)
+
+
+def test_warm_start_that_cannot_carry_the_clip_falls_back_to_the_two_view_start():
+    tracks, K, R_true, t_true = _turning_tracks()
+    known = np.where(tracks.visible[:, :1], np.random.default_rng(0).normal(size=(len(tracks), 3)) * 50, np.nan)
+    sfm = estimate_poses(tracks, K, known=known)  # points that fit no frame: PnP finds nothing consistent
+    assert sfm.status == OK and sfm.diagnostics["warm_start"] is False
+    err = [np.degrees(np.linalg.norm(so3.log(R_true[i].T @ sfm.R_wc[i]))) for i in range(len(R_true))]
+    assert max(err) < 0.3
+
+
+@pytest.mark.slow
+def test_the_backbone_carries_tracks_and_structure_from_clip_to_clip(room):
+    """Sliding clips (each starting with the last frame of the one before): the second continues the first's tracks
+    and starts from its structure, and its poses agree with the same clip run from scratch; a clip that does not
+    continue (frames skipped) starts afresh."""
+    idx = np.arange(0, 30, 2)
+    first, second = make_clip(room, idx[:8]), make_clip(room, idx[7:15])
+    carried = ClassicalBackbone()
+    for clip in (first, second):
+        carried.bind(clip)
+        out = carried.preprocess(clip.images, clip.K)
+        assert out.status == "ok"
+    assert carried.diagnostics()["warm_start"] is True
+    fresh = ClassicalBackbone()
+    fresh.bind(second)
+    cold = fresh.preprocess(second.images, second.K)
+    assert fresh.diagnostics()["warm_start"] is False
+    T_gt = gt_camera_poses(second.gt, second.T_BC)
+    for got in (out, cold):
+        R = got.base_R_wc.double().numpy()
+        err = [np.degrees(np.linalg.norm(so3.log(T_gt[i, :3, :3].T @ R[i]))) for i in range(8)]
+        assert max(err) < 0.2, err
+    skipped = make_clip(room, idx[9:17] + 1)  # not starting where the last clip ended
+    carried.bind(skipped)
+    carried.preprocess(skipped.images, skipped.K)
+    assert carried.diagnostics()["warm_start"] is False
+    assert carried.tracker.keys()[0] == pytest.approx(float(skipped.stamps[0]))
+
+
+@pytest.mark.slow
+def test_bench_tracker_reports_both_frame_sizes(cache_dir, monkeypatch):
+    monkeypatch.setenv("VI3_CACHE", str(cache_dir))
+    out = bench_tracker(argparse.Namespace(repeats=1))
+    for size in ("752x480", "1280x720"):
+        assert out[size]["cpu_ms_per_frame"] > 0 and 0 < out[size]["live_tracks"] <= out["options"]["max_features"]
+        assert 0 < out[size]["whole_clip_share"] <= 1

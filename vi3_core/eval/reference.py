@@ -1,0 +1,340 @@
+"""A metric reference for a recording without ground truth: an offline reconstruction's camera poses (up to one
+unknown scale, in any world frame, e.g. COLMAP's structure from motion of the frames) given its metric scale, gravity
+and the camera-IMU time offset by a batch visual-inertial fit of the whole IMU record.
+
+The fit (beyond the paper, whose scale is per clip): keyframes at the reconstruction's stamps t_k, body poses from its
+cameras (R_WB_k = R_WC_k R_CB, p_k = s c_k + R_WC_k t_CB: the scale s multiplies the reconstruction's camera centres
+c_k, the lever arm is metric), the IMU preintegrated between consecutive keyframes (``preintegration``; its stamps
+moved by the time offset). Per interval, in the body frame at its start (Eqs. preintegrationVelocity /
+preintegrationTranslation between two keyframes):
+
+    r_v = R_WB_k^T (v_k+1 - v_k - g dt) - dbeta_k(ba)
+    r_p = R_WB_k^T (p_k+1 - p_k - v_k dt - g dt^2 / 2) - dalpha_k(ba)
+
+linear in the unknowns s, g (|g| fixed by a tangent-plane refinement), ba and every keyframe's velocity v_k: one sparse
+weighted least squares. The gyro bias comes first, from the reconstruction's rotations against the gyro, and the time
+offset from the profile of that rotation fit over a grid of offsets. Weights: the IMU's noise (``ImuNoiseModel``,
+the velocity change's sigma per interval and the position's, both with the gyro scale error of the angle turned) and
+the reconstruction's own position noise, estimated from the position residuals (a variance component); the scale's
+sigma is the least squares' own, times sqrt(chi^2 / dof) where that exceeds one. ``fit_halves`` fits each half of the
+record alone: a sigma that is right has the halves agree within their combined sigmas.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.optimize import least_squares
+
+from vi3_core import so3
+from vi3_core.errors import DataError
+from vi3_core.fit.noise import ImuNoiseModel
+from vi3_core.preintegration import Preintegration, frame_rotations, merged_grid, preintegrate
+from vi3_core.types import ImuSamples
+
+GRAVITY = 9.81
+MAX_INTERVAL_S = 1.0  # keyframes further apart than this are not tied (a reconstruction that lost the camera)
+MIN_KEYFRAMES = 10
+
+
+@dataclass(frozen=True)
+class ReferenceFit:
+    """The batch fit. scale: metres per reconstruction unit, scale_sigma its 1-sigma (m per unit); g [3]: gravity
+    in the reconstruction's world, m/s^2; bg [3] rad/s, ba [3] m/s^2: the biases (constant over the record);
+    time_offset: s, the IMU's stamps plus this are the camera's (t_cam = t_imu + time_offset); sigma_ref: the
+    reconstruction's position noise, m (estimated); chi2_dof: the weighted residual per degree of freedom (about 1:
+    the weights fit); keyframes, intervals: what was fitted; span: (first, last) keyframe stamp, s."""
+
+    scale: float
+    scale_sigma: float
+    g: np.ndarray
+    bg: np.ndarray
+    ba: np.ndarray
+    time_offset: float
+    sigma_ref: float
+    chi2_dof: float
+    keyframes: int
+    intervals: int
+    span: tuple[float, float]
+
+    @property
+    def rel_sigma(self) -> float:
+        return self.scale_sigma / self.scale
+
+    def as_dict(self) -> dict:
+        return {"scale": self.scale, "scale_sigma": self.scale_sigma, "rel_sigma": self.rel_sigma,
+                "gravity": self.g.tolist(), "bg": self.bg.tolist(), "ba": self.ba.tolist(),
+                "time_offset_s": self.time_offset, "sigma_ref_m": self.sigma_ref, "chi2_dof": self.chi2_dof,
+                "keyframes": self.keyframes, "intervals": self.intervals, "span_s": list(self.span)}
+
+    def body_track(self, stamps: np.ndarray, T_WC: np.ndarray, T_BC: np.ndarray) -> np.ndarray:
+        """The metric IMU body poses [n,4,4] of the reconstruction's cameras ``T_WC`` [n,4,4] (its units) at
+        ``stamps`` [n] (camera clock, kept: ``vi3 eval`` looks a frame's ground truth up at the frame's stamp), in a
+        gravity-aligned world (z up, its origin at the first body position)."""
+        R_align = _align_gravity(self.g)
+        T_CB = so3.inv_T(np.asarray(T_BC, np.float64))
+        T = np.array(T_WC, np.float64)
+        T[:, :3, 3] *= self.scale
+        T_WB = T @ T_CB
+        T_WB[:, :3, :3] = R_align @ T_WB[:, :3, :3]
+        T_WB[:, :3, 3] = (T_WB[:, :3, 3] - T_WB[0, :3, 3]) @ R_align.T
+        return T_WB
+
+
+def fit_reference(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples, T_BC: np.ndarray, *,
+                  noise: ImuNoiseModel | None = None, offsets: np.ndarray | None = None,
+                  time_offset: float | None = None) -> ReferenceFit:
+    """The batch fit (see the module docstring) of a reconstruction's camera poses ``T_WC`` [n,4,4] (camera to its
+    world, its units) at ``stamps`` [n] s (camera clock, increasing) to ``imu`` (body frame, IMU clock), camera mount
+    ``T_BC`` [4,4]. ``time_offset``: s, known (skips the search), else the best of ``offsets`` (s; default -0.2 to
+    0.2 s in 2 ms steps) refined to a fraction of a step. DataError naming what is missing."""
+    noise = noise or ImuNoiseModel()
+    stamps, T_WC = _checked(stamps, T_WC, imu)
+    R_WB = T_WC[:, :3, :3] @ np.asarray(T_BC, np.float64)[:3, :3].T
+    if time_offset is None:
+        grid = np.arange(-0.2, 0.2 + 1e-9, 0.002) if offsets is None else np.asarray(offsets, np.float64)
+        time_offset = _best_offset(stamps, R_WB, imu, grid)
+    keep = (stamps - time_offset > imu.t[0]) & (stamps - time_offset < imu.t[-1])
+    if keep.sum() < MIN_KEYFRAMES:
+        raise DataError(f"the IMU covers {int(keep.sum())} of the reference's {len(stamps)} poses at a time offset of "
+                        f"{1e3 * time_offset:.1f} ms (need {MIN_KEYFRAMES})")
+    stamps, T_WC, R_WB = stamps[keep], T_WC[keep], R_WB[keep]
+    bg = _gyro_bias(stamps - time_offset, R_WB, imu)
+    pre = preintegrate(imu, stamps - time_offset, bg, jacobians=True)
+    return _solve(stamps, T_WC, R_WB, np.asarray(T_BC, np.float64), pre, noise, time_offset, bg)
+
+
+def fit_halves(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples, T_BC: np.ndarray, *,
+               noise: ImuNoiseModel | None = None, time_offset: float) -> tuple[ReferenceFit, ReferenceFit]:
+    """``fit_reference`` of the first and the second half of the keyframes (by time) on their own, at the whole
+    record's ``time_offset``."""
+    stamps = np.asarray(stamps, np.float64)
+    mid = 0.5 * (stamps[0] + stamps[-1])
+    return tuple(fit_reference(stamps[m], np.asarray(T_WC)[m], imu, T_BC, noise=noise, time_offset=time_offset)
+                 for m in (stamps <= mid, stamps > mid))
+
+
+def _checked(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples) -> tuple[np.ndarray, np.ndarray]:
+    stamps, T_WC = np.asarray(stamps, np.float64), np.asarray(T_WC, np.float64)
+    if stamps.ndim != 1 or T_WC.shape != (len(stamps), 4, 4):
+        raise DataError(f"a reference needs stamps [n] and poses [n,4,4], got {stamps.shape} and {T_WC.shape}")
+    if len(stamps) < MIN_KEYFRAMES or not (np.isfinite(stamps).all() and np.isfinite(T_WC).all()):
+        raise DataError(f"a reference needs >= {MIN_KEYFRAMES} finite poses, got {len(stamps)}")
+    if np.any(np.diff(stamps) <= 0):
+        raise DataError("the reference's stamps must increase")
+    if len(imu.t) < 2:
+        raise DataError("no IMU samples to fit the reference to")
+    return stamps, T_WC
+
+
+def _intervals(stamps: np.ndarray) -> np.ndarray:
+    """[k] the keyframes k whose interval to k+1 is tied (not longer than MAX_INTERVAL_S)."""
+    return np.flatnonzero(np.diff(stamps) <= MAX_INTERVAL_S)
+
+
+def _rotation_residual(pre_R: np.ndarray, R_WB: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """[len(k),3] rad: the gyro's rotation over each tied interval against the reconstruction's."""
+    dR_imu = np.swapaxes(pre_R[k], 1, 2) @ pre_R[k + 1]
+    dR_ref = np.swapaxes(R_WB[k], 1, 2) @ R_WB[k + 1]
+    return so3.log(np.swapaxes(dR_imu, 1, 2) @ dR_ref)
+
+
+def _gyro_bias(t_imu: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, bg0: np.ndarray | None = None) -> np.ndarray:
+    """The constant gyro bias [3] that best turns the gyro into the reconstruction's rotations (keyframes at
+    ``t_imu``, IMU clock)."""
+    grid, k = merged_grid(imu, t_imu), _intervals(t_imu)
+
+    def residual(bg: np.ndarray) -> np.ndarray:
+        return _rotation_residual(frame_rotations(grid, bg), R_WB, k).ravel()
+
+    return least_squares(residual, np.zeros(3) if bg0 is None else bg0, method="lm", x_scale=1e-3).x
+
+
+def _best_offset(stamps: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, grid: np.ndarray) -> float:
+    """The time offset (s) of ``grid`` whose rotation fit (the gyro bias of the whole record fitted at the grid's
+    middle, the rotations compared over every tied interval) is best, refined by a parabola through its
+    neighbours."""
+
+    bg = _gyro_bias(stamps - float(np.median(grid)), R_WB, imu)
+    cost = np.full(len(grid), np.inf)
+    for i, dt in enumerate(grid):
+        t = stamps - dt
+        inside = (t > imu.t[0]) & (t < imu.t[-1])
+        if inside.sum() < MIN_KEYFRAMES:
+            continue
+        k = _intervals(t[inside])
+        r = _rotation_residual(frame_rotations(merged_grid(imu, t[inside]), bg), R_WB[inside], k)
+        cost[i] = float(np.mean(r**2))
+    if not np.isfinite(cost).any():
+        raise DataError("the IMU does not cover the reference's poses at any time offset searched")
+    i = int(np.argmin(cost))
+    if 0 < i < len(grid) - 1 and np.isfinite(cost[i - 1:i + 2]).all():
+        a, b, c = cost[i - 1:i + 2]
+        step = grid[i + 1] - grid[i]
+        den = a - 2 * b + c
+        if den > 0:
+            return float(grid[i] + 0.5 * step * (a - c) / den)
+    return float(grid[i])
+
+
+def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndarray, pre: Preintegration,
+           noise: ImuNoiseModel, time_offset: float, bg: np.ndarray) -> ReferenceFit:
+    """The fit of s, g (|g| = GRAVITY), ba, v_k (module docstring) by Gauss-Newton, with the reconstruction's true
+    camera centres as unknowns too (c_k measured with noise sigma_ref): the scale multiplies the noisy side, and a
+    least squares that took the measured centres as exact would shrink it (errors in variables: with a velocity per
+    keyframe the positions enter twice differenced, their noise as large as gentle motion's acceleration). sigma_ref
+    is estimated by variance components (Helmert: the residuals of the centres against their redundancy)."""
+    n = len(stamps)
+    k = _intervals(stamps)
+    m = len(k)
+    if m < MIN_KEYFRAMES:
+        raise DataError(f"{m} keyframe intervals of at most {MAX_INTERVAL_S} s (need {MIN_KEYFRAMES})")
+    dt = np.diff(stamps)[k]
+    RkT = np.swapaxes(pre.R[k], 1, 2)  # the preintegration's deltas into B_k
+    J = pre.J
+    dbeta = np.einsum("kij,kj->ki", RkT, pre.beta[k + 1] - pre.beta[k])
+    dalpha = np.einsum("kij,kj->ki", RkT, pre.alpha[k + 1] - pre.alpha[k] - pre.beta[k] * dt[:, None])
+    Jb = RkT @ (J.beta_ba[k + 1] - J.beta_ba[k])  # d dbeta / d ba [m,3,3]
+    Ja = RkT @ (J.alpha_ba[k + 1] - J.alpha_ba[k] - J.beta_ba[k] * dt[:, None, None])
+    c = T_WC[:, :3, 3]
+    lever = np.einsum("nij,j->ni", T_WC[:, :3, :3], so3.inv_T(T_BC)[:3, 3])  # metric, world
+    dlever = lever[k + 1] - lever[k]
+    RbT = np.swapaxes(R_WB[k], 1, 2)  # world -> B_k (the reconstruction's rotations)
+    angle = np.linalg.norm(_rotation_residual(np.tile(np.eye(3), (n, 1, 1)), R_WB, k), axis=1)
+    w_v = 1.0 / np.array([noise.velocity_sigma(float(a), float(b), GRAVITY) for a, b in zip(dt, angle)])
+    w_p = 1.0 / np.sqrt(noise.accel_noise_density**2 * dt**3 / 3.0
+                        + (GRAVITY * noise.gyro_scale_error * angle * dt**2 / 6.0) ** 2)
+    # unknowns: s | dg (2, tangent at the current g) | ba (3) | v (3n) | c_hat (3n)
+    iS, iG, iA, iV = 0, 1, 3, 6
+    iC = iV + 3 * n
+    nx = iC + 3 * n
+    rv, rp, rc = 3 * np.arange(m), 3 * m + 3 * np.arange(m), 6 * m + 3 * np.arange(n)
+
+    def jacobian(s_: float, g: np.ndarray, basis: np.ndarray, c_hat: np.ndarray) -> sp.csc_matrix:
+        rows, cols, vals = [], [], []
+
+        def put(r0, c0, M):  # M [len(r0),3,q] at rows r0..r0+3, columns c0..c0+q
+            q = M.shape[2]
+            r0 = np.broadcast_to(np.asarray(r0), (len(M),))
+            c0 = np.broadcast_to(np.asarray(c0), (len(M),))
+            rows.append((r0[:, None, None] + np.arange(3)[None, :, None]).repeat(q, 2).ravel())
+            cols.append((c0[:, None, None] + np.arange(q)[None, None, :]).repeat(3, 1).ravel())
+            vals.append(M.ravel())
+
+        put(rv, iV + 3 * (k + 1), RbT)
+        put(rv, iV + 3 * k, -RbT)
+        put(rv, iG, -(RbT * dt[:, None, None]) @ basis)
+        put(rv, iA, -Jb)
+        put(rp, iS, np.einsum("kij,kj->ki", RbT, c_hat[k + 1] - c_hat[k])[:, :, None])
+        put(rp, iC + 3 * (k + 1), s_ * RbT)
+        put(rp, iC + 3 * k, -s_ * RbT)
+        put(rp, iV + 3 * k, -RbT * dt[:, None, None])
+        put(rp, iG, -(RbT * (0.5 * dt**2)[:, None, None]) @ basis)
+        put(rp, iA, -Ja)
+        put(rc, iC + 3 * np.arange(n), np.tile(np.eye(3), (n, 1, 1)))
+        return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(6 * m + 3 * n, nx))
+
+    def residual(s_: float, g: np.ndarray, ba: np.ndarray, v: np.ndarray, c_hat: np.ndarray) -> np.ndarray:
+        r_v = np.einsum("kij,kj->ki", RbT, v[k + 1] - v[k] - g * dt[:, None]) - dbeta - Jb @ ba
+        r_p = (np.einsum("kij,kj->ki", RbT, s_ * (c_hat[k + 1] - c_hat[k]) + dlever - v[k] * dt[:, None]
+                         - 0.5 * g * dt[:, None] ** 2) - dalpha - Ja @ ba)
+        return np.concatenate([r_v.ravel(), r_p.ravel(), (c_hat - c).ravel()])
+
+    # start: gravity as minus the mean specific force, the scale from the sizes of the accelerations (the
+    # reconstruction's twice-differenced centres against the IMU's): only a starting point for Gauss-Newton
+    g = GRAVITY * _initial_gravity(R_WB, k, dbeta)
+    s_ = _initial_scale(c, stamps, R_WB, k, dt, dbeta, g)
+    ba = np.zeros(3)
+    v = np.gradient(s_ * c, stamps, axis=0)
+    c_hat = c.copy()
+    sigma_ref = max(0.01 * float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))), 1e-9)
+    for _ in range(6):
+        for _ in range(12):
+            basis = _tangent_basis(g / GRAVITY) * GRAVITY
+            w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
+            Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
+            r = w * residual(s_, g, ba, v, c_hat)
+            lu = spla.splu((Jm.T @ Jm).tocsc())
+            dx = -lu.solve(Jm.T @ r)
+            s_ += dx[iS]
+            g = g + basis @ dx[iG:iA]
+            g = GRAVITY * g / np.linalg.norm(g)
+            ba = ba + dx[iA:iV]
+            v = v + dx[iV:iC].reshape(n, 3)
+            c_hat = c_hat + dx[iC:].reshape(n, 3)
+            if abs(dx[iS]) <= 1e-10 * abs(s_):
+                break
+        # Helmert: sigma_ref^2 = the centres' weighted residuals over their redundancy (n_c - tr(W_c N^-1_cc),
+        # the trace by Hutchinson's estimator on the centres' block)
+        rc_ = (c_hat - c).ravel()
+        probes = np.random.default_rng(0).choice([-1.0, 1.0], size=(24, 3 * n))
+        trace = 0.0
+        for z in probes:
+            e = np.zeros(nx)
+            e[iC:] = z
+            trace += float(z @ lu.solve(e)[iC:])
+        redundancy = max(3 * n - trace / len(probes) / sigma_ref**2, 1.0)
+        new = math.sqrt(float(rc_ @ rc_) / redundancy)
+        converged = abs(new - sigma_ref) <= 0.01 * sigma_ref
+        sigma_ref = new
+        if converged:
+            break
+    w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
+    basis = _tangent_basis(g / GRAVITY) * GRAVITY
+    Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
+    lu = spla.splu((Jm.T @ Jm).tocsc())
+    r = w * residual(s_, g, ba, v, c_hat)
+    dof = max(len(r) - (nx - 1), 1)
+    chi2 = float(r @ r / dof)
+    e0 = np.zeros(nx)
+    e0[iS] = 1.0
+    var_s = float(lu.solve(e0)[iS]) * max(chi2, 1.0)
+    return ReferenceFit(scale=float(s_), scale_sigma=math.sqrt(max(var_s, 0.0)), g=g, bg=np.asarray(bg, np.float64),
+                        ba=ba, time_offset=float(time_offset), sigma_ref=float(s_ * sigma_ref), chi2_dof=chi2,
+                        keyframes=n, intervals=m, span=(float(stamps[0]), float(stamps[-1])))
+
+
+def _initial_scale(c: np.ndarray, stamps: np.ndarray, R_WB: np.ndarray, k: np.ndarray, dt: np.ndarray,
+                   dbeta: np.ndarray, g: np.ndarray) -> float:
+    """Metres per unit from the median size of the world accelerations: the IMU's (R_WB dbeta / dt + g) over the
+    reconstruction's (second differences of its centres)."""
+    a_imu = np.einsum("kij,kj->ki", R_WB[k], dbeta) / dt[:, None] + g
+    vel = np.diff(c, axis=0) / np.diff(stamps)[:, None]
+    a_rec = np.diff(vel, axis=0) / (0.5 * (stamps[2:] - stamps[:-2]))[:, None]
+    ratio = np.median(np.linalg.norm(a_imu, axis=1)) / max(float(np.median(np.linalg.norm(a_rec, axis=1))), 1e-12)
+    return float(ratio) if np.isfinite(ratio) and ratio > 0 else 1.0
+
+
+def _initial_gravity(R_WB: np.ndarray, k: np.ndarray, dbeta: np.ndarray) -> np.ndarray:
+    """Unit gravity direction in the reconstruction's world: minus the mean specific force (the accelerometer reads
+    -g on average over any flight that ends about as fast as it began), each interval's velocity change rotated into
+    the world."""
+    f = np.einsum("kij,kj->ki", R_WB[k], dbeta).sum(0)
+    return -f / np.linalg.norm(f)
+
+
+def _tangent_basis(n: np.ndarray) -> np.ndarray:
+    """[3,2] an orthonormal basis of the plane orthogonal to the unit vector ``n``."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    b1 = np.cross(n, a)
+    b1 /= np.linalg.norm(b1)
+    return np.column_stack([b1, np.cross(n, b1)])
+
+
+def _align_gravity(g: np.ndarray) -> np.ndarray:
+    """[3,3] the smallest rotation that turns gravity ``g`` to -z (a z-up world)."""
+    u = np.asarray(g, np.float64) / np.linalg.norm(g)
+    target = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(u, target)
+    s, c = np.linalg.norm(axis), float(u @ target)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    return so3.exp(axis / s * math.atan2(s, c))
+
+
+__all__ = ["ReferenceFit", "fit_halves", "fit_reference"]
