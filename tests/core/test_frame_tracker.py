@@ -14,7 +14,7 @@ from vi3_core import so3
 from vi3_core.backbones.classical import ClassicalBackbone
 from vi3_core.backbones.classical.bench import bench_tracker
 from vi3_core.backbones.classical.poses import OK, estimate_poses
-from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks, cell_of, track_features
+from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks, cell_of
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import gt_camera_poses, make_clip
@@ -60,7 +60,10 @@ def test_tracks_fit_the_true_geometry_to_a_fraction_of_a_pixel(stream):
     """Every track of a clip triangulated from the true poses reprojects within a fraction of a pixel (the render's
     images: sub-pixel LK, no drift along an edge that the forward-backward and epipolar checks let through)."""
     clip, gray, T = stream
-    tracks = track_features(gray[:8])
+    tracker = FrameTracker()
+    for i, g in enumerate(gray[:8]):
+        tracker.add(float(i), g)
+    tracks = tracker.tracks([float(i) for i in range(8)])
     K = clip.K
     P = np.stack([K @ so3.inv_T(t)[:3] for t in T[:8]])
     uv, vis = tracks.uv, tracks.visible

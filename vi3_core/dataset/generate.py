@@ -280,7 +280,7 @@ def _merged(base_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> tuple[n
     step = base_ns[k + 1] - base_ns[k]
     phase = ((base_ns[k] - base_ns[0]) // RS_MERGE_EVERY * RS_MERGE_DRIFT_NS // RS_IMU_PERIOD_NS) % step
     extra = base_ns[k] + np.clip(phase, 700, step - 700)  # never on a base stamp (700 ns: the recording's shortest)
-    u = ((extra - base_ns[k]) / (base_ns[k + 1] - base_ns[k]))[:, None]
+    u = ((extra - base_ns[k]) / step)[:, None]
     stamps = np.concatenate([base_ns, extra])
     order = np.argsort(stamps, kind="stable")
     g = np.concatenate([gyro, (1 - u) * gyro[k] + u * gyro[k + 1]])

@@ -32,7 +32,9 @@ from scipy.optimize import least_squares
 
 from vi3_core import so3
 from vi3_core.errors import DataError
+from vi3_core.fit.linalg import tangent_basis
 from vi3_core.fit.noise import ImuNoiseModel
+from vi3_core.online.chain import gravity_align
 from vi3_core.preintegration import Preintegration, frame_rotations, merged_grid, preintegrate
 from vi3_core.types import ImuSamples
 
@@ -75,7 +77,7 @@ class ReferenceFit:
         """The metric IMU body poses [n,4,4] of the reconstruction's cameras ``T_WC`` [n,4,4] (its units) at
         ``stamps`` [n] (camera clock, kept: ``vi3 eval`` looks a frame's ground truth up at the frame's stamp), in a
         gravity-aligned world (z up, its origin at the first body position)."""
-        R_align = _align_gravity(self.g)
+        R_align = gravity_align(np.eye(3), self.g)
         T_CB = so3.inv_T(np.asarray(T_BC, np.float64))
         T = np.array(T_WC, np.float64)
         T[:, :3, 3] *= self.scale
@@ -255,7 +257,7 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     sigma_ref = max(0.01 * float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))), 1e-9)
     for _ in range(6):
         for _ in range(12):
-            basis = _tangent_basis(g / GRAVITY) * GRAVITY
+            basis = tangent_basis(g / GRAVITY) * GRAVITY
             w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
             Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
             r = w * residual(s_, g, ba, v, c_hat)
@@ -285,7 +287,7 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
         if converged:
             break
     w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
-    basis = _tangent_basis(g / GRAVITY) * GRAVITY
+    basis = tangent_basis(g / GRAVITY) * GRAVITY
     Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
     lu = spla.splu((Jm.T @ Jm).tocsc())
     r = w * residual(s_, g, ba, v, c_hat)
@@ -316,25 +318,6 @@ def _initial_gravity(R_WB: np.ndarray, k: np.ndarray, dbeta: np.ndarray) -> np.n
     the world."""
     f = np.einsum("kij,kj->ki", R_WB[k], dbeta).sum(0)
     return -f / np.linalg.norm(f)
-
-
-def _tangent_basis(n: np.ndarray) -> np.ndarray:
-    """[3,2] an orthonormal basis of the plane orthogonal to the unit vector ``n``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    b1 = np.cross(n, a)
-    b1 /= np.linalg.norm(b1)
-    return np.column_stack([b1, np.cross(n, b1)])
-
-
-def _align_gravity(g: np.ndarray) -> np.ndarray:
-    """[3,3] the smallest rotation that turns gravity ``g`` to -z (a z-up world)."""
-    u = np.asarray(g, np.float64) / np.linalg.norm(g)
-    target = np.array([0.0, 0.0, -1.0])
-    axis = np.cross(u, target)
-    s, c = np.linalg.norm(axis), float(u @ target)
-    if s < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    return so3.exp(axis / s * math.atan2(s, c))
 
 
 __all__ = ["ReferenceFit", "fit_halves", "fit_reference"]

@@ -254,12 +254,11 @@ class OnlineRun:
     the same stamps; segment_starts: stamps at which the estimator began a new segment (``Trajectory.resets``);
     decisions: the estimator's description of each clip; resets: clips after the first whose decision restarted the
     state (every reset the decision log records); scale_err [n_clips]: each chained clip's scale error
-    (``claims.scale_error``; NaN: no value); independent_status, independent_scale_err, independent_rel_sigma
-    [n_clips]: each clip's own
-    GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale sigma;
-    metrics: None when the trajectory cannot be scored, ``reason`` then says why; coverage: how soon and how often
-    the run claimed in flight, and its scale links (``vi3_core.eval.coverage``); calibration: the rig's estimate after
-    each clip (None without self-calibration) and clip_t0 the first stamp of each clip, s."""
+    (``claims.scale_error``; NaN: no value); independent_status, independent_scale_err, independent_rel_sigma [n_clips]:
+    each clip's own GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale
+    sigma; metrics: None when the trajectory cannot be scored, ``reason`` then says why; coverage: how soon and how
+    often the run claimed in flight, and its scale links (``vi3_core.eval.coverage``); calibration: the rig's estimate
+    after each clip (None without self-calibration) and clip_t0 the first stamp of each clip, s."""
 
     stamps: np.ndarray
     T_OB: np.ndarray

@@ -149,7 +149,7 @@ class ClassicalBackbone(Backbone):
         self._depth_frames: np.ndarray | None = None  # of the clip bound, for its ``preprocess``
         self._stamps: np.ndarray | None = None  # of the clip bound: the keys of its frames in the tracker
         # the last clip's structure for the next one's warm start: (its last frame's key, track ids [m], points [m,3]
-        # in that last camera's frame, its SfM scale)
+        # in that last camera's frame, at that clip's SfM scale)
         self._structure: tuple[float, np.ndarray, np.ndarray] | None = None
 
     def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
@@ -217,12 +217,11 @@ class ClassicalBackbone(Backbone):
         """[m,3] points of ``tracks`` the clip before reconstructed, in this clip's world (its first camera, which was
         that clip's last), at that clip's SfM scale; None when the clip does not start where that one ended."""
         kept = self._structure
-        if kept is None or kept[0] != first_key:
+        if kept is None or kept[0] != first_key or not len(kept[1]):
             return None
         _, ids, points = kept
-        idx = np.clip(np.searchsorted(ids, tracks.ids), 0, max(len(ids) - 1, 0))
-        hit = len(ids) > 0 and (ids[idx] == tracks.ids)
-        return np.where(hit[:, None], points[idx], np.nan) if len(ids) else None
+        idx = np.minimum(np.searchsorted(ids, tracks.ids), len(ids) - 1)
+        return np.where((ids[idx] == tracks.ids)[:, None], points[idx], np.nan)
 
     def _keep_structure(self, sfm, tracks: Tracks, last_key: float) -> None:
         """The clip's points in its last camera's frame, for the next clip's warm start (none after a failure)."""

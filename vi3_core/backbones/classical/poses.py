@@ -82,9 +82,10 @@ def triangulate(uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray, t_wc: np.
 
 
 def _clean_points(points: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray,
-                  K: np.ndarray, *, max_reproj_px: float, min_angle_deg: float) -> np.ndarray:
+                  K: np.ndarray, *, max_reproj_px: float, min_angle_deg: float | np.ndarray) -> np.ndarray:
     """NaN out points seen in < 2 views, behind a camera, with a reprojection error above ``max_reproj_px``
-    in any view, or whose rays meet at less than ``min_angle_deg`` (depth poorly constrained)."""
+    in any view, or whose rays meet at less than ``min_angle_deg`` (depth poorly constrained; one for all, or per
+    point [m])."""
     proj, z = project(points, R_wc, t_wc, K)
     err = np.where(visible, np.linalg.norm(proj - uv, axis=-1), 0.0)
     rays = points[:, None, :] - t_wc[None]
@@ -98,18 +99,6 @@ def _clean_points(points: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc:
     good &= np.nan_to_num(err, nan=np.inf).max(axis=1) <= max_reproj_px
     good &= angle >= min_angle_deg
     return np.where(good[:, None], points, np.nan)
-
-
-def _kept(points: np.ndarray, carried: np.ndarray, uv: np.ndarray, visible: np.ndarray, R_wc: np.ndarray,
-          t_wc: np.ndarray, K: np.ndarray, *, max_reproj_px: float, min_angle_deg: float) -> np.ndarray:
-    """``_clean_points``, except that a ``carried`` [m] point (from the clip before) needs no angle between its rays
-    in this clip: its depth came from that clip's."""
-    strict = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px,
-                           min_angle_deg=min_angle_deg)
-    if not carried.any():
-        return strict
-    loose = _clean_points(points, uv, visible, R_wc, t_wc, K, max_reproj_px=max_reproj_px, min_angle_deg=0.0)
-    return np.where(carried[:, None], loose, strict)
 
 
 def _rotation_only(uv: np.ndarray, visible: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -231,14 +220,14 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = 
         failed = _register(uv, visible, K, R_wc, t_wc, points, [0, j], ransac_px=ransac_px, clean=clean)
         if failed is not None:
             return SfmResult(R_rot, zero, nan_points, FEW_FEATURES, failed, diag)
-    # a carried point whose rays in this clip meet at too small an angle keeps the depth the clip before gave it
+    # a carried point needs no angle between its rays in this clip: its depth came from the clip before
     was_carried = np.isfinite(carried[:, 0]) if diag["warm_start"] else np.zeros(len(uv), bool)
+    final = dict(max_reproj_px=max_reproj_px, min_angle_deg=np.where(was_carried, 0.0, min_angle_deg))
     points = triangulate(uv, visible, R_wc, t_wc, K)
-    points = _kept(np.where(np.isfinite(points[:, :1]), points, carried), was_carried, uv, visible, R_wc, t_wc, K,
-                   **clean)
+    points = _clean_points(np.where(np.isfinite(points[:, :1]), points, carried), uv, visible, R_wc, t_wc, K, **final)
     if bundle_adjust:
         R_wc, t_wc, points = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations)
-        points = _kept(points, was_carried, uv, visible, R_wc, t_wc, K, **clean)
+        points = _clean_points(points, uv, visible, R_wc, t_wc, K, **final)
     good = np.isfinite(points[:, 0])
     proj, _ = project(points[good], R_wc, t_wc, K)
     err = np.linalg.norm(proj - uv[good], axis=-1)[visible[good]]

@@ -208,10 +208,3 @@ def cell_of(pts: np.ndarray, W: int, H: int, cols: int, rows: int) -> np.ndarray
     return (np.minimum(pts[:, 1] // -(-H // rows), rows - 1).astype(int) * cols
             + np.minimum(pts[:, 0] // -(-W // cols), cols - 1).astype(int))
 
-
-def track_features(gray: np.ndarray, *, options: TrackerOptions | None = None) -> Tracks:
-    """The tracks of a clip's frames ``gray`` [n,H,W] uint8 tracked on their own (a fresh ``FrameTracker``)."""
-    tracker = FrameTracker(options)
-    for i, g in enumerate(gray):
-        tracker.add(float(i), g)
-    return tracker.tracks([float(i) for i in range(len(gray))])
