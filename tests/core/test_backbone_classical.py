@@ -13,10 +13,9 @@ from test_backbone_contract import half_resolution
 
 from vi3_core import so3
 from vi3_core.backbones import make_backbone
-from vi3_core.backbones._hub import resize_crop
 from vi3_core.backbones.base import Condition
 from vi3_core.backbones.bench import bench_backbone
-from vi3_core.backbones.classical import ClassicalBackbone
+from vi3_core.backbones.classical import ClassicalBackbone, mvs
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.camera_torch import pixel_rays
 from vi3_core.dataset.asl import read_asl
@@ -171,6 +170,16 @@ def test_plane_sweep_result_does_not_depend_on_its_threads(exact_plane):
         assert np.array_equal(one[0], three[0]) and np.array_equal(one[1], three[1])
 
 
+def test_plane_sweep_warps_planes_in_blocks_when_one_map_would_be_too_wide(exact_plane, monkeypatch):
+    """cv2.remap refuses maps of SHRT_MAX columns or more, so a wide frame's planes are warped a block at a time
+    (2048 px x 24 planes would be 49152 columns): the blocks give the same bits as one map of all planes."""
+    args, _, w = exact_plane
+    whole = plane_sweep(*args, frames=[0], n_depths=7, n_sources=3, best_k=2, window=5)
+    monkeypatch.setattr(mvs, "_REMAP_MAX_SIDE", 3 * w + 1)  # blocks of 3, 3 and 1 planes
+    blocks = plane_sweep(*args, frames=[0], n_depths=7, n_sources=3, best_k=2, window=5)
+    assert np.array_equal(whole[0], blocks[0]) and np.array_equal(whole[1], blocks[1])
+
+
 @pytest.mark.slow
 def test_a_clip_preprocessed_again_gives_the_same_depth_bit_for_bit(cache_dir):
     """The depth of two frames (as the node reads it) swept on 2 threads sharing OpenCV's pool, five times: the same
@@ -278,16 +287,21 @@ def test_bad_input_raises_named_errors(half_clip):
         backbone.forward(inputs, Condition(T_wc=np.tile(np.eye(4), (3, 1, 1))))
 
 
-def test_working_grid_is_the_shared_resize_crop(half_clip):
-    """preprocess resamples with ``_hub.resize_crop``: the same images and K (skew kept) at the working grid."""
+def test_working_grid_is_the_area_average_with_its_intrinsics(half_clip):
+    """preprocess works at a quarter of 376x240: each working pixel the mean grey of its 4x4 block, in [0,1], and K
+    (skew kept) for that grid, so that a point projects onto the same spot of the scene in both."""
     images, K = half_clip
     K = K.copy()
     K[0, 1] = 0.8
     backbone = ClassicalBackbone()
     inputs = backbone.preprocess(images[:3], K)
-    x, K_t = resize_crop(images[:3], K, backbone.working_size(*images.shape[1:3]), device=torch.device("cpu"))
-    assert torch.equal(inputs.images, x) and torch.equal(inputs.K, K_t)
-    assert float(inputs.K[0, 0, 1]) == pytest.approx(0.8 * x.shape[-1] / images.shape[2])
+    assert backbone.working_size(240, 376) == (60, 94) and inputs.images.shape == (3, 3, 60, 94)
+    blocks = images[:3].reshape(3, 60, 4, 94, 4).mean(axis=(2, 4)) / 255.0
+    np.testing.assert_allclose(inputs.images[:, 1].numpy(), blocks, atol=1e-5)
+    x = np.array([0.3, -0.2, 2.0])  # a point in front of the camera: pixel corners map to pixel corners
+    uv, uv_w = (k[:2] @ x / x[2] for k in (K, inputs.K[0].double().numpy()))
+    np.testing.assert_allclose(uv_w, (uv + 0.5) / 4 - 0.5, atol=1e-4)
+    assert float(inputs.K[0, 0, 1]) == pytest.approx(0.8 / 4)
     diag = backbone.diagnostics()
     assert diag["status"] == inputs.status and diag["reason"] == inputs.reason
     assert {"tracks_s", "sfm_s", "mvs_s", "scale_divisor"} <= set(diag)

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from vi3_core import so3, so3_torch
-from vi3_core.backbones._hub import check_clip, resize_crop, scaled_K
+from vi3_core.backbones._hub import check_clip, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
@@ -81,16 +81,23 @@ class ClassicalInputs(BackboneInputs):
     diagnostics: dict = field(default_factory=dict)
 
 
-def _shrunk(images: np.ndarray, K: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray]:
-    """``images`` [n,H,W(,3)] uint8 and their K [3,3] (pixels), shrunk uniformly (area averaging) so that the long
-    side is ``max_side`` when it is longer; else unchanged."""
+def _area_resized(images: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``images`` [n,H,W(,3)] resized (area averaging, same dtype) to ``hw`` = (h, w) and the new grid's K [3,3]
+    (pixels)."""
     H, W = images.shape[1:3]
-    s = max_side / max(H, W)
-    if s >= 1.0:
+    h, w = hw
+    if (h, w) == (H, W):
         return images, K
-    w, h = max(int(round(W * s)), 1), max(int(round(H * s)), 1)
     small = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in images])
     return small, scaled_K(K, w / W, h / H)
+
+
+def _shrunk(images: np.ndarray, K: np.ndarray, max_side: int) -> tuple[np.ndarray, np.ndarray]:
+    """``images`` [n,H,W(,3)] uint8 and their K [3,3] (pixels), shrunk uniformly so that the long side is
+    ``max_side`` when it is longer; else unchanged."""
+    H, W = images.shape[1:3]
+    s = min(max_side / max(H, W), 1.0)
+    return _area_resized(images, K, (max(int(round(H * s)), 1), max(int(round(W * s)), 1)))
 
 
 def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: float) -> tuple[float, float]:
@@ -178,12 +185,13 @@ class ClassicalBackbone(Backbone):
 
     def working_size(self, H: int, W: int) -> tuple[int, int]:
         """(h, w) of the working resolution for (H, W) input images: each side divided by ``downscale`` and rounded
-        (at least 8); ``preprocess`` scales the images uniformly to cover it and centre-crops the rounding excess."""
+        (at least 8); ``preprocess`` resizes the images to it (area averaging; the sides' scales differ by the
+        rounding)."""
         return max(int(round(H / self.downscale)), 8), max(int(round(W / self.downscale)), 8)
 
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> ClassicalInputs:
         """images [n,H,W] or [n,H,W,3] uint8 (undistorted, RGB), K [3,3] -> ``ClassicalInputs`` on ``device``:
-        images [n,3,h,w] and K [n,3,3] at the working resolution (``_hub.resize_crop``)."""
+        images [n,3,h,w] (grey replicated, in [0,1]) and K [n,3,3] at the working resolution."""
         workers = self.threads or torch.get_num_threads()
         depth_frames, self._depth_frames = self._depth_frames, None
         stamps, self._stamps = self._stamps, None
@@ -240,8 +248,11 @@ class ClassicalBackbone(Backbone):
         n, H, W = images.shape[:3]
         h, w = self.working_size(H, W)
         dev = self.device
-        img, K_t = resize_crop(images, K, (h, w), device=dev)
         gray = images if images.ndim == 3 else np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images])
+        # the working resolution, in float so that a faint texture keeps its sub-grey-level shading
+        small, K_w = _area_resized(gray.astype(np.float32) / np.float32(255.0), K, (h, w))
+        img = torch.from_numpy(small).to(dev)[:, None].expand(n, 3, h, w)
+        K_t = torch.as_tensor(K_w, dtype=torch.float32, device=dev).expand(n, 3, 3)
 
         timings = {}
         t0 = time.perf_counter()
@@ -257,9 +268,8 @@ class ClassicalBackbone(Backbone):
         if sfm.ok:
             t0 = time.perf_counter()
             near, far = _depth_range(sfm, tracks.visible, K, margin=2.0)
-            K_w = K_t[0].double().cpu().numpy()  # the working resolution's intrinsics
             swept = np.arange(n) if depth_frames is None else np.asarray(depth_frames, np.int64)
-            d, c = plane_sweep(img.mean(1).cpu().numpy(), K_w, sfm.R_wc, sfm.t_wc, np.tile([near, far], (n, 1)),
+            d, c = plane_sweep(small, K_w, sfm.R_wc, sfm.t_wc, np.tile([near, far], (n, 1)),
                                frames=swept, workers=workers, **self.mvs_options)
             timings["mvs_s"] = time.perf_counter() - t0
             # Scale normalisation (VGGT-style): confidence-weighted mean distance of the dense points from the

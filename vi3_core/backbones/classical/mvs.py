@@ -1,9 +1,10 @@
 """Plane-sweep multi-view stereo with OpenCV and numpy: dense z-depth and a matching-cost confidence per frame.
 
 For a reference frame, ``n_depths`` fronto-parallel planes are swept uniformly in inverse depth over its depth
-range; each source image is warped onto every plane (the plane's homography as explicit maps, ``cv2.remap``) and
-compared with the reference by zero-mean normalised cross-correlation (ZNCC, approximated as described in
-``plane_sweep``) over a ``window`` x ``window`` box (``cv2.boxFilter`` over all planes at once, planes as channels).
+range; each source image is warped onto every plane (the planes' homographies as explicit maps, all planes in one
+``cv2.remap``) and compared with the reference by zero-mean normalised cross-correlation (ZNCC, approximated as
+described in ``plane_sweep``) over a ``window`` x ``window`` box (``cv2.boxFilter`` over all planes at once, planes
+as channels).
 The per-plane score is the mean of the ``best_k`` best sources (robust to occlusion), the depth the winning plane
 refined by a parabola through its neighbours, and the confidence the probability mass of a softmax over the scores
 within one plane of the winner, times the winning score: flat or repetitive texture, occlusions and pixels no source
@@ -24,6 +25,8 @@ import numpy as np
 
 #: The warp's interpolation; pixels whose bilinear footprint leaves the source image come out NaN (not seen).
 _WARP = dict(interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+#: cv2.remap refuses maps with a side of SHRT_MAX or more; a frame's planes are warped as one [h, w*planes] map.
+_REMAP_MAX_SIDE = 32767
 
 
 def select_sources(n: int, *, n_sources: int) -> np.ndarray:
@@ -69,6 +72,7 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
     frames_normed = [np.ascontiguousarray(normed[..., f]) for f in range(n)]
     K_inv = np.linalg.inv(K)
     v, u = np.mgrid[0:h, 0:w].astype(np.float32)  # pixel rows and columns
+    planes_per_remap = max(1, (_REMAP_MAX_SIDE - 1) // w)
 
     def sweep(i: int) -> tuple[np.ndarray, np.ndarray]:
         """Depth and confidence [h,w] of reference frame i; memory [h,w,k*D] a few times."""
@@ -79,31 +83,29 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
         D = n_depths
         zncc = np.empty((len(src), h, w, D), np.float32)
         prod = np.empty((h, w, 2 * D), np.float32)
-        xyz = np.empty((3, h, w), np.float32)  # the source pixel (x, y) and its depth z on one plane
         warped = np.empty((h, w, D), np.float32)
+        behind = np.empty((h, w, D), bool)
         ref = frames_normed[i][..., None]
         eps = np.float32(1e-6 * area * area)
         for s, j in enumerate(src):
             R_ji = R_wc[j].T @ R_wc[i]  # reference camera -> source camera
             t_ji = R_wc[j].T @ (t_wc[i] - t_wc[j])
             # Source pixel of reference pixel x = (u, v, 1) on the plane at inverse depth q: the homography
-            # K R_ji K^-1 x + q K t_ji (K^-1's last row is (0, 0, 1)), as explicit maps, plane by plane (they stay
-            # in cache): cv2.warpPerspective computed them in row blocks starting where its thread's share began,
-            # so with concurrent sweeps (a busy OpenCV pool) a few pixels' depth moved from run to run.
+            # K R_ji K^-1 x + q K t_ji (K^-1's last row is (0, 0, 1)), as explicit maps [h,w,planes] warped by one
+            # remap per block of planes (cv2.warpPerspective computed them in row blocks starting where its
+            # thread's share began, so with concurrent sweeps a few pixels' depth moved from run to run).
             H0, Kt = (K @ R_ji @ K_inv).astype(np.float32), (K @ t_ji).astype(np.float32)
-            rays = [H0[r, 0] * u + H0[r, 1] * v + H0[r, 2] for r in range(3)]  # [h,w] each
-            behind = []  # (plane, [h,w] pixels behind the source camera): rare, a plane partly behind it
+            rays = [(H0[r, 0] * u + H0[r, 1] * v + H0[r, 2])[..., None] for r in range(3)]  # [h,w,1] each
+            qKt = q[:, None] * Kt  # [D,3]
             with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: see ``behind``
-                for d in range(D):
-                    for r in range(3):
-                        np.add(rays[r], q[d] * Kt[r], out=xyz[r])
-                    np.divide(xyz[:2], xyz[2], out=xyz[:2])
-                    warped[..., d] = cv2.remap(frames_normed[j], xyz[0], xyz[1], **_WARP)
-                    if xyz[2][[0, -1]][:, [0, -1]].min() <= 1e-6:  # z is affine in the pixel: least at a corner
-                        behind.append((d, xyz[2] <= 1e-6))
+                for d0 in range(0, D, planes_per_remap):
+                    d = slice(d0, d0 + planes_per_remap)
+                    z = rays[2] + qKt[d, 2]
+                    np.less_equal(z, 1e-6, out=behind[..., d])  # behind the source camera: a plane partly behind it
+                    maps = [((rays[r] + qKt[d, r]) / z).reshape(h, -1) for r in range(2)]
+                    warped[..., d] = cv2.remap(frames_normed[j], *maps, **_WARP).reshape(h, w, -1)
             unseen = np.isnan(warped)  # [h,w,D]
-            for d, mask in behind:
-                unseen[..., d] |= mask
+            unseen |= behind
             np.copyto(warped, 0.0, where=unseen)
             # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
             # fractional shifts) from biasing the disparity toward whole pixels. Both box sums in one call.
@@ -132,13 +134,13 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
         fit = (curv < -1e-6) & (lo < best) & (hi > best)
         offset = np.divide(0.5 * (s0 - s2), curv, out=np.zeros_like(curv), where=fit)
         inv_best = inv_near + (best + np.clip(offset, -0.5, 0.5)) / (D - 1) * (inv_far - inv_near)
-        prob = score
+        prob = score  # softmax over the planes, shifted by its maximum, the winner's
         prob *= 1.0 / temperature
-        prob -= prob.max(-1, keepdims=True)
+        prob -= s1 * (1.0 / temperature)
         np.exp(prob, out=prob)
-        prob /= prob.sum(-1, keepdims=True)
-        peak = np.take_along_axis(prob, lo, -1) * (lo < best) + np.take_along_axis(prob, best, -1) + \
-            np.take_along_axis(prob, hi, -1) * (hi > best)
+        total = prob.sum(-1, keepdims=True)
+        peak = (np.take_along_axis(prob, lo, -1) / total) * (lo < best) + np.take_along_axis(prob, best, -1) / total \
+            + (np.take_along_axis(prob, hi, -1) / total) * (hi > best)
         return (1.0 / inv_best[..., 0]).astype(np.float32), (peak * np.maximum(s1, 0.0))[..., 0].astype(np.float32)
 
     refs = range(n) if frames is None else [int(i) for i in frames]
