@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import signal
 import sys
 
 from vi3_ros import interrupts
@@ -34,8 +33,8 @@ def main(argv: list[str] | None = None) -> int:
                 # a signal while an extension module initialises surfaces as an ImportError raised from it
                 if isinstance(exc, ImportError) and not isinstance(exc.__cause__, KeyboardInterrupt):
                     raise
-                print(f"vi3 {args.command}: interrupted by {trap.name or 'SIGINT'}", file=sys.stderr)
-                return trap.status if trap.signum is not None else 128 + signal.SIGINT
+                print(f"vi3 {args.command}: interrupted by {trap.name}", file=sys.stderr)
+                return trap.status
     finally:
         interrupts.set_phase(interrupts.FINISHED)
 

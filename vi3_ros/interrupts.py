@@ -42,12 +42,13 @@ class Trap:
 
     @property
     def name(self) -> str:
-        return signal.Signals(self.signum).name if self.signum is not None else ""
+        """The received signal's name; SIGINT for a KeyboardInterrupt that came without a trapped signal."""
+        return signal.Signals(self.signum or signal.SIGINT).name
 
     @property
     def status(self) -> int:
-        """The program's exit status for the received signal (128 + its number)."""
-        return 128 + (self.signum or 0)
+        """The program's exit status for the received signal (128 + its number; SIGINT's, 130, when none was)."""
+        return 128 + (self.signum or signal.SIGINT)
 
 
 STARTING = "before the command started; nothing was written"

@@ -57,8 +57,8 @@ def run(args: argparse.Namespace) -> int:
                              image_topic=args.image_topic, imu_topic=args.imu_topic,
                              on_note=lambda note: print(f"vi3 calib: note: {note}", file=sys.stderr))
         except KeyboardInterrupt:
-            print(f"vi3 calib: interrupted by {trap.name or 'SIGINT'}; nothing was written", file=sys.stderr)
-            return trap.status if trap.signum is not None else 130
+            print(f"vi3 calib: interrupted by {trap.name}; nothing was written", file=sys.stderr)
+            return trap.status
         except (Vi3Error, ValueError, OSError) as exc:
             print(f"vi3 calib: error: {exc}", file=sys.stderr)
             return 2

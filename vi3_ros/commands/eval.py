@@ -24,7 +24,6 @@ import argparse
 import functools
 import os
 import re
-import signal
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -283,9 +282,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             options, backbone, runs, outputs = _prepare(args)
         except KeyboardInterrupt:
-            print(f"vi3 eval: interrupted by {trap.name or 'SIGINT'} before any clip was evaluated; nothing was "
+            print(f"vi3 eval: interrupted by {trap.name} before any clip was evaluated; nothing was "
                   "written", file=sys.stderr)
-            return trap.status if trap.signum is not None else 128 + signal.SIGINT
+            return trap.status
         except (Vi3Error, ValueError, OSError) as exc:
             print(f"vi3 eval: error: {exc}", file=sys.stderr)
             return 2

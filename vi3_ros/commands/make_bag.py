@@ -181,8 +181,7 @@ def run(args: argparse.Namespace) -> int:
             verb = "cannot write" if Path(args.out) in (path, *path.parents) else "cannot read"
             return fail(f"{verb} {path}: {err.strerror or err}")
         except KeyboardInterrupt:
-            return fail(f"interrupted by {trap.name or 'SIGINT'}; nothing written (partial output removed)",
-                        trap.status if trap.signum is not None else 130)
+            return fail(f"interrupted by {trap.name}; nothing written (partial output removed)", trap.status)
         if trap.signum is not None:
             return fail(f"interrupted by {trap.name} after the outputs were complete in {args.out}", trap.status)
     stages = ", ".join(f"{k[:-2].replace('_', ' ')} {v:.1f} s" for k, v in times.items())

@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
 
             fit, halves, n_poses = _fit(args)
         except KeyboardInterrupt:
-            print(f"vi3 reference: interrupted by {trap.name or 'SIGINT'}; nothing was written", file=sys.stderr)
-            return trap.status if trap.signum is not None else 130
+            print(f"vi3 reference: interrupted by {trap.name}; nothing was written", file=sys.stderr)
+            return trap.status
         except (Vi3Error, ValueError, OSError) as exc:
             print(f"vi3 reference: error: {exc}", file=sys.stderr)
             return 2
