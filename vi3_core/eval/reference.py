@@ -145,7 +145,7 @@ def _rotation_residual(pre_R: np.ndarray, R_WB: np.ndarray, k: np.ndarray) -> np
     return so3.log(np.swapaxes(dR_imu, 1, 2) @ dR_ref)
 
 
-def _gyro_bias(t_imu: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, bg0: np.ndarray | None = None) -> np.ndarray:
+def _gyro_bias(t_imu: np.ndarray, R_WB: np.ndarray, imu: ImuSamples) -> np.ndarray:
     """The constant gyro bias [3] that best turns the gyro into the reconstruction's rotations (keyframes at
     ``t_imu``, IMU clock)."""
     grid, k = merged_grid(imu, t_imu), _intervals(t_imu)
@@ -153,7 +153,7 @@ def _gyro_bias(t_imu: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, bg0: np.nda
     def residual(bg: np.ndarray) -> np.ndarray:
         return _rotation_residual(frame_rotations(grid, bg), R_WB, k).ravel()
 
-    return least_squares(residual, np.zeros(3) if bg0 is None else bg0, method="lm", x_scale=1e-3).x
+    return least_squares(residual, np.zeros(3), method="lm", x_scale=1e-3).x
 
 
 def _best_offset(stamps: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, grid: np.ndarray) -> float:
@@ -254,14 +254,19 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     ba = np.zeros(3)
     v = np.gradient(s_ * c, stamps, axis=0)
     c_hat = c.copy()
+
+    def linearised(sigma_ref: float):
+        """(tangent basis of g, whitened Jacobian, whitened residual, the normal matrix's LU) at the current
+        unknowns."""
+        basis = tangent_basis(g / GRAVITY) * GRAVITY
+        w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
+        Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
+        return basis, Jm, w * residual(s_, g, ba, v, c_hat), spla.splu((Jm.T @ Jm).tocsc())
+
     sigma_ref = max(0.01 * float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))), 1e-9)
     for _ in range(6):
         for _ in range(12):
-            basis = tangent_basis(g / GRAVITY) * GRAVITY
-            w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
-            Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
-            r = w * residual(s_, g, ba, v, c_hat)
-            lu = spla.splu((Jm.T @ Jm).tocsc())
+            basis, Jm, r, lu = linearised(sigma_ref)
             dx = -lu.solve(Jm.T @ r)
             s_ += dx[iS]
             g = g + basis @ dx[iG:iA]
@@ -286,11 +291,7 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
         sigma_ref = new
         if converged:
             break
-    w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
-    basis = tangent_basis(g / GRAVITY) * GRAVITY
-    Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
-    lu = spla.splu((Jm.T @ Jm).tocsc())
-    r = w * residual(s_, g, ba, v, c_hat)
+    _, _, r, lu = linearised(sigma_ref)
     dof = max(len(r) - (nx - 1), 1)
     chi2 = float(r @ r / dof)
     e0 = np.zeros(nx)

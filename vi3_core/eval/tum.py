@@ -33,11 +33,16 @@ def write_tum(path: str | Path, stamps: np.ndarray, T: np.ndarray) -> Path:
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM file -> stamps [n] and poses [n,4,4]."""
-    rows = np.atleast_2d(np.loadtxt(path, comments="#"))
-    if rows.shape[1] != 8:
+    """Read a TUM file -> stamps [n] and poses [n,4,4]; DataError naming the file when its text is not one (a value
+    that is no number, a quaternion that is no rotation)."""
+    try:
+        rows = np.atleast_2d(np.loadtxt(path, comments="#"))
+        R = so3.quat_to_R(rows[:, 4:8]) if rows.shape[1] == 8 else None
+    except ValueError as err:
+        raise DataError(f"{path}: not a TUM trajectory ({err})") from None
+    if R is None:
         raise DataError(f"{path}: TUM lines need 8 columns (t tx ty tz qx qy qz qw), found {rows.shape[1]}")
-    return rows[:, 0], so3.make_T(so3.quat_to_R(rows[:, 4:8]), rows[:, 1:4])
+    return rows[:, 0], so3.make_T(R, rows[:, 1:4])
 
 
 def reference_track(path: str | Path) -> GroundTruthTrack:
@@ -46,7 +51,7 @@ def reference_track(path: str | Path) -> GroundTruthTrack:
     stamps not increasing, a rotation that is not one)."""
     try:
         stamps, T = read_tum(path)
-    except (OSError, ValueError) as err:
+    except OSError as err:
         raise DataError(f"{path}: not a TUM trajectory ({err})") from None
     if len(stamps) < 2 or np.any(np.diff(stamps) <= 0) or not np.isfinite(T).all():
         raise DataError(f"{path}: a reference needs >= 2 poses with increasing stamps and finite values")

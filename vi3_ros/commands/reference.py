@@ -91,10 +91,7 @@ def _fit(args: argparse.Namespace):
     if calib is None:
         raise DataError(f"{args.input} carries no calibration; pass --calib (its T_cam_imu mounts the camera)")
     T_BC = calib.T_BC
-    try:
-        stamps, T_WC = read_tum(args.poses)
-    except ValueError as err:
-        raise DataError(f"--poses {args.poses}: not a TUM trajectory ({err})") from None
+    stamps, T_WC = read_tum(args.poses)
     imu = imu_samples(e for e in iter_events(args.input, imu=TopicRequest(args.imu_topic))
                       if isinstance(e, ImuEvent))
     fit = fit_reference(stamps, T_WC, imu, T_BC, time_offset=args.time_offset)
