@@ -8,16 +8,21 @@ c_k, the lever arm is metric), the IMU preintegrated between consecutive keyfram
 moved by the time offset). Per interval, in the body frame at its start (Eqs. preintegrationVelocity /
 preintegrationTranslation between two keyframes):
 
-    r_v = R_WB_k^T (v_k+1 - v_k - g dt) - dbeta_k(ba)
-    r_p = R_WB_k^T (p_k+1 - p_k - v_k dt - g dt^2 / 2) - dalpha_k(ba)
+    r_v = R_WB_k^T (v_k+1 - v_k - g dt) - dbeta_k(ba_k)
+    r_p = R_WB_k^T (p_k+1 - p_k - v_k dt - g dt^2 / 2) - dalpha_k(ba_k)
+    r_b = ba_k+1 - ba_k                                   (the accelerometer bias's random walk)
 
-linear in the unknowns s, g (|g| fixed by a tangent-plane refinement), ba and every keyframe's velocity v_k: one sparse
-weighted least squares. The gyro bias comes first, from the reconstruction's rotations against the gyro, and the time
-offset from the profile of that rotation fit over a grid of offsets. Weights: the IMU's noise (``ImuNoiseModel``,
-the velocity change's sigma per interval and the position's, both with the gyro scale error of the angle turned) and
-the reconstruction's own position noise, estimated from the position residuals (a variance component); the scale's
-sigma is the least squares' own, times sqrt(chi^2 / dof) where that exceeds one. ``fit_halves`` fits each half of the
-record alone: a sigma that is right has the halves agree within their combined sigmas.
+linear in the unknowns s, g (|g| fixed by a tangent-plane refinement), every interval's accelerometer bias ba_k and
+every keyframe's velocity v_k: one sparse weighted least squares. The gyro bias comes first, from the
+reconstruction's rotations against the gyro, and the time offset from the profile of that rotation fit over a grid of
+offsets. Weights: the IMU's noise (``ImuNoiseModel``, the velocity change's sigma per interval and the position's,
+both with the gyro scale error of the angle turned), the bias walk's (``accel_bias_walk``) and the reconstruction's
+own position noise, each group scaled by a variance component estimated from the residuals (restricted maximum
+likelihood), so that the weighting is the data's, not an assumed one: on gentle motion the scale depends on how the
+IMU's errors are weighted against the reconstruction's (on a handheld recording a 3x larger assumed accelerometer
+noise moved a fit with assumed weights by a quarter). The scale's sigma is the least squares' own, times
+sqrt(chi^2 / dof) where that exceeds one. ``fit_halves`` fits each half of the record alone: a sigma that is right
+has the halves agree within their combined sigmas.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from vi3_core.preintegration import Preintegration, frame_rotations, merged_grid
 from vi3_core.types import ImuSamples
 
 GRAVITY = 9.81
+PROBES = 24  # Hutchinson probes per variance component and iteration
 MAX_INTERVAL_S = 1.0  # keyframes further apart than this are not tied (a reconstruction that lost the camera)
 MIN_KEYFRAMES = 10
 
@@ -46,10 +52,13 @@ MIN_KEYFRAMES = 10
 @dataclass(frozen=True)
 class ReferenceFit:
     """The batch fit. scale: metres per reconstruction unit, scale_sigma its 1-sigma (m per unit); g [3]: gravity
-    in the reconstruction's world, m/s^2; bg [3] rad/s, ba [3] m/s^2: the biases (constant over the record);
+    in the reconstruction's world, m/s^2; bg [3] rad/s: the gyro bias (constant over the record); ba [3] m/s^2: the
+    accelerometer bias's mean over the record, ba_spread (m/s^2) the largest distance of its walk from that mean;
     time_offset: s, the IMU's stamps plus this are the camera's (t_cam = t_imu + time_offset); sigma_ref: the
-    reconstruction's position noise, m (estimated); chi2_dof: the weighted residual per degree of freedom (about 1:
-    the weights fit); keyframes, intervals: what was fitted; span: (first, last) keyframe stamp, s."""
+    reconstruction's position noise, m; imu_noise_factor: the IMU noise model's sigmas are this times the given ones;
+    accel_bias_walk: m/s^2/sqrt(s), the bias's random walk (the three estimated); chi2_dof: the weighted residual per
+    degree of freedom (about 1 once the variance components are estimated); keyframes, intervals: what was fitted;
+    span: (first, last) keyframe stamp, s."""
 
     scale: float
     scale_sigma: float
@@ -62,6 +71,9 @@ class ReferenceFit:
     keyframes: int
     intervals: int
     span: tuple[float, float]
+    imu_noise_factor: float
+    accel_bias_walk: float
+    ba_spread: float
 
     @property
     def rel_sigma(self) -> float:
@@ -71,7 +83,9 @@ class ReferenceFit:
         return {"scale": self.scale, "scale_sigma": self.scale_sigma, "rel_sigma": self.rel_sigma,
                 "gravity": self.g.tolist(), "bg": self.bg.tolist(), "ba": self.ba.tolist(),
                 "time_offset_s": self.time_offset, "sigma_ref_m": self.sigma_ref, "chi2_dof": self.chi2_dof,
-                "keyframes": self.keyframes, "intervals": self.intervals, "span_s": list(self.span)}
+                "keyframes": self.keyframes, "intervals": self.intervals, "span_s": list(self.span),
+                "imu_noise_factor": self.imu_noise_factor, "accel_bias_walk": self.accel_bias_walk,
+                "ba_spread": self.ba_spread}
 
     def body_track(self, stamps: np.ndarray, T_WC: np.ndarray, T_BC: np.ndarray) -> np.ndarray:
         """The metric IMU body poses [n,4,4] of the reconstruction's cameras ``T_WC`` [n,4,4] (its units) at
@@ -185,11 +199,12 @@ def _best_offset(stamps: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, grid: np
 
 def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndarray, pre: Preintegration,
            noise: ImuNoiseModel, time_offset: float, bg: np.ndarray) -> ReferenceFit:
-    """The fit of s, g (|g| = GRAVITY), ba, v_k (module docstring) by Gauss-Newton, with the reconstruction's true
+    """The fit of s, g (|g| = GRAVITY), ba_k, v_k (module docstring) by Gauss-Newton, with the reconstruction's true
     camera centres as unknowns too (c_k measured with noise sigma_ref): the scale multiplies the noisy side, and a
     least squares that took the measured centres as exact would shrink it (errors in variables: with a velocity per
-    keyframe the positions enter twice differenced, their noise as large as gentle motion's acceleration). sigma_ref
-    is estimated by variance components (Helmert: the residuals of the centres against their redundancy)."""
+    keyframe the positions enter twice differenced, their noise as large as gentle motion's acceleration); between
+    Gauss-Newton solutions, the three groups' variances (IMU, bias walk, centres) by a Fisher-scoring step of their
+    restricted likelihood."""
     n = len(stamps)
     k = _intervals(stamps)
     m = len(k)
@@ -210,11 +225,18 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     w_v = 1.0 / np.array([noise.velocity_sigma(float(a), float(b), GRAVITY) for a, b in zip(dt, angle)])
     w_p = 1.0 / np.sqrt(noise.accel_noise_density**2 * dt**3 / 3.0
                         + (GRAVITY * noise.gyro_scale_error * angle * dt**2 / 6.0) ** 2)
-    # unknowns: s | dg (2, tangent at the current g) | ba (3) | v (3n) | c_hat (3n)
-    iS, iG, iA, iV = 0, 1, 3, 6
+    # the accelerometer bias walks (a consumer IMU's drifts by several hundredths of m/s^2 over a minute): one bias per
+    # interval, consecutive ones tied over the time between their starts
+    w_b = 1.0 / (max(noise.accel_bias_walk, 1e-9) * np.sqrt(np.diff(stamps[k])))
+    # unknowns: s | dg (2, tangent at the current g) | ba (3m, one per interval) | v (3n) | c_hat (3n)
+    iS, iG, iA = 0, 1, 3
+    iV = iA + 3 * m
     iC = iV + 3 * n
     nx = iC + 3 * n
-    rv, rp, rc = 3 * np.arange(m), 3 * m + 3 * np.arange(m), 6 * m + 3 * np.arange(n)
+    rv, rp, rc, rb = (r0 + 3 * np.arange(q) for r0, q in ((0, m), (3 * m, m), (6 * m, n), (6 * m + 3 * n, m - 1)))
+    n_rows = 6 * m + 3 * n + 3 * (m - 1)
+    groups = {"imu": np.arange(6 * m), "walk": np.arange(6 * m + 3 * n, n_rows),
+              "centres": np.arange(6 * m, 6 * m + 3 * n)}
 
     def jacobian(s_: float, g: np.ndarray, basis: np.ndarray, c_hat: np.ndarray) -> sp.csc_matrix:
         rows, cols, vals = [], [], []
@@ -227,79 +249,111 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
             cols.append((c0[:, None, None] + np.arange(q)[None, None, :]).repeat(3, 1).ravel())
             vals.append(M.ravel())
 
+        eye = np.tile(np.eye(3), (m - 1, 1, 1))
         put(rv, iV + 3 * (k + 1), RbT)
         put(rv, iV + 3 * k, -RbT)
         put(rv, iG, -(RbT * dt[:, None, None]) @ basis)
-        put(rv, iA, -Jb)
+        put(rv, iA + 3 * np.arange(m), -Jb)
         put(rp, iS, np.einsum("kij,kj->ki", RbT, c_hat[k + 1] - c_hat[k])[:, :, None])
         put(rp, iC + 3 * (k + 1), s_ * RbT)
         put(rp, iC + 3 * k, -s_ * RbT)
         put(rp, iV + 3 * k, -RbT * dt[:, None, None])
         put(rp, iG, -(RbT * (0.5 * dt**2)[:, None, None]) @ basis)
-        put(rp, iA, -Ja)
+        put(rp, iA + 3 * np.arange(m), -Ja)
         put(rc, iC + 3 * np.arange(n), np.tile(np.eye(3), (n, 1, 1)))
+        put(rb, iA + 3 * np.arange(1, m), eye)
+        put(rb, iA + 3 * np.arange(m - 1), -eye)
         return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(6 * m + 3 * n, nx))
+                             shape=(n_rows, nx))
 
     def residual(s_: float, g: np.ndarray, ba: np.ndarray, v: np.ndarray, c_hat: np.ndarray) -> np.ndarray:
-        r_v = np.einsum("kij,kj->ki", RbT, v[k + 1] - v[k] - g * dt[:, None]) - dbeta - Jb @ ba
+        r_v = (np.einsum("kij,kj->ki", RbT, v[k + 1] - v[k] - g * dt[:, None]) - dbeta
+               - np.einsum("kij,kj->ki", Jb, ba))
         r_p = (np.einsum("kij,kj->ki", RbT, s_ * (c_hat[k + 1] - c_hat[k]) + dlever - v[k] * dt[:, None]
-                         - 0.5 * g * dt[:, None] ** 2) - dalpha - Ja @ ba)
-        return np.concatenate([r_v.ravel(), r_p.ravel(), (c_hat - c).ravel()])
+                         - 0.5 * g * dt[:, None] ** 2) - dalpha - np.einsum("kij,kj->ki", Ja, ba))
+        return np.concatenate([r_v.ravel(), r_p.ravel(), (c_hat - c).ravel(), (ba[1:] - ba[:-1]).ravel()])
 
     # start: gravity as minus the mean specific force, the scale from the sizes of the accelerations (the
     # reconstruction's twice-differenced centres against the IMU's): only a starting point for Gauss-Newton
     g = GRAVITY * _initial_gravity(R_WB, k, dbeta)
     s_ = _initial_scale(c, stamps, R_WB, k, dt, dbeta, g)
-    ba = np.zeros(3)
+    ba = np.zeros((m, 3))
     v = np.gradient(s_ * c, stamps, axis=0)
     c_hat = c.copy()
+    step = float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)))
+    # the variance components: the IMU's (a factor on the noise model's densities), the bias walk's (a factor on its
+    # accel_bias_walk) and the centres' (sigma_ref^2, reconstruction units); floored, so that a group the data do not
+    # need keeps a finite weight
+    var = {"imu": 1.0, "walk": 1.0, "centres": max(0.01 * step, 1e-9) ** 2}
+    floor = {"imu": 1e-4, "walk": 1e-4, "centres": max(1e-4 * step, 1e-9) ** 2}
 
-    def linearised(sigma_ref: float):
+    def weights() -> np.ndarray:
+        imu = np.repeat(np.concatenate([w_v, w_p]), 3) / math.sqrt(var["imu"])
+        return np.concatenate([imu, np.full(3 * n, 1.0 / math.sqrt(var["centres"])),
+                               np.repeat(w_b, 3) / math.sqrt(var["walk"])])
+
+    def linearised():
         """(tangent basis of g, whitened Jacobian, whitened residual, the normal matrix's LU) at the current
-        unknowns."""
+        unknowns and variance components."""
         basis = tangent_basis(g / GRAVITY) * GRAVITY
-        w = np.concatenate([np.repeat(w_v, 3), np.repeat(w_p, 3), np.full(3 * n, 1.0 / sigma_ref)])
+        w = weights()
         Jm = sp.diags(w) @ jacobian(s_, g, basis, c_hat)
-        return basis, Jm, w * residual(s_, g, ba, v, c_hat), spla.splu((Jm.T @ Jm).tocsc())
+        # the normal matrix is symmetric positive definite: a symmetric ordering keeps its factor sparse (COLAMD's
+        # made it 50x slower on 400 keyframes)
+        N = (Jm.T @ Jm).tocsc()
+        return basis, Jm, w * residual(s_, g, ba, v, c_hat), spla.splu(
+            N, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
-    sigma_ref = max(0.01 * float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1))), 1e-9)
-    for _ in range(6):
+    for _ in range(30):
         for _ in range(12):
-            basis, Jm, r, lu = linearised(sigma_ref)
+            basis, Jm, r, lu = linearised()
             dx = -lu.solve(Jm.T @ r)
             s_ += dx[iS]
             g = g + basis @ dx[iG:iA]
             g = GRAVITY * g / np.linalg.norm(g)
-            ba = ba + dx[iA:iV]
+            ba = ba + dx[iA:iV].reshape(m, 3)
             v = v + dx[iV:iC].reshape(n, 3)
             c_hat = c_hat + dx[iC:].reshape(n, 3)
             if abs(dx[iS]) <= 1e-10 * abs(s_):
                 break
-        # Helmert: sigma_ref^2 = the centres' weighted residuals over their redundancy (n_c - tr(W_c N^-1_cc),
-        # the trace by Hutchinson's estimator on the centres' block)
-        rc_ = (c_hat - c).ravel()
-        probes = np.random.default_rng(0).choice([-1.0, 1.0], size=(24, 3 * n))
-        trace = 0.0
-        for z in probes:
-            e = np.zeros(nx)
-            e[iC:] = z
-            trace += float(z @ lu.solve(e)[iC:])
-        redundancy = max(3 * n - trace / len(probes) / sigma_ref**2, 1.0)
-        new = math.sqrt(float(rc_ @ rc_) / redundancy)
-        converged = abs(new - sigma_ref) <= 0.01 * sigma_ref
-        sigma_ref = new
-        if converged:
+        # restricted maximum likelihood of the three variances by Fisher scoring in their logarithms (Helmert's
+        # one-at-a-time update crawls where they trade off, as the IMU's and the centres' do on gentle motion): in
+        # whitened rows, with H the hat matrix and E_i group i's rows, the score is (r_i^T r_i - n_i + tr H_ii) / 2 and
+        # the information (delta_ij (n_i - 2 tr H_ii) + |H_ij|_F^2) / 2, the traces by Hutchinson's estimator
+        names = list(groups)
+        tr_H = np.zeros(len(names))
+        H2 = np.zeros((len(names), len(names)))
+        rng = np.random.default_rng(0)
+        Jr = Jm.tocsr()
+        for j, name in enumerate(names):
+            Jg = Jr[groups[name]]
+            for z in rng.choice([-1.0, 1.0], size=(PROBES, len(groups[name]))):
+                u = Jg.T @ z
+                x = lu.solve(u)
+                tr_H[j] += float(u @ x) / PROBES
+                y = Jr @ x
+                H2[:, j] += [float(y[groups[i]] @ y[groups[i]]) / PROBES for i in names]
+        n_g = np.array([len(groups[i]) for i in names], np.float64)
+        score = 0.5 * (np.array([float(r[groups[i]] @ r[groups[i]]) for i in names]) - n_g + tr_H)
+        info = 0.5 * (np.diag(n_g - 2.0 * tr_H) + 0.5 * (H2 + H2.T))
+        step_ = np.clip(np.linalg.solve(info, score), -2.0, 2.0)
+        pinned = np.array([var[i] <= floor[i] for i in names]) & (step_ < 0)  # the data want less than the floor
+        for name, d in zip(names, step_):
+            var[name] = max(var[name] * math.exp(d), floor[name])
+        if np.all((np.abs(step_) < 0.01) | pinned):
             break
-    _, _, r, lu = linearised(sigma_ref)
+    _, _, r, lu = linearised()
     dof = max(len(r) - (nx - 1), 1)
     chi2 = float(r @ r / dof)
     e0 = np.zeros(nx)
     e0[iS] = 1.0
     var_s = float(lu.solve(e0)[iS]) * max(chi2, 1.0)
     return ReferenceFit(scale=float(s_), scale_sigma=math.sqrt(max(var_s, 0.0)), g=g, bg=np.asarray(bg, np.float64),
-                        ba=ba, time_offset=float(time_offset), sigma_ref=float(s_ * sigma_ref), chi2_dof=chi2,
-                        keyframes=n, intervals=m, span=(float(stamps[0]), float(stamps[-1])))
+                        ba=ba.mean(0), time_offset=float(time_offset), sigma_ref=float(s_ * math.sqrt(var["centres"])),
+                        chi2_dof=chi2, keyframes=n, intervals=m, span=(float(stamps[0]), float(stamps[-1])),
+                        imu_noise_factor=math.sqrt(var["imu"]),
+                        accel_bias_walk=noise.accel_bias_walk * math.sqrt(var["walk"]),
+                        ba_spread=float(np.linalg.norm(ba - ba.mean(0), axis=1).max()))
 
 
 def _initial_scale(c: np.ndarray, stamps: np.ndarray, R_WB: np.ndarray, k: np.ndarray, dt: np.ndarray,

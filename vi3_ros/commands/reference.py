@@ -63,8 +63,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"vi3 reference: {fit.keyframes} of {n_poses} poses over {fit.span[1] - fit.span[0]:.1f} s: scale "
               f"{fit.scale:.6g} m per unit +- {100 * fit.rel_sigma:.2f} %, time offset {1e3 * fit.time_offset:+.1f} ms "
               f"(camera minus IMU), gyro bias {fit.bg.round(5).tolist()} rad/s, accelerometer bias "
-              f"{fit.ba.round(3).tolist()} m/s^2, the reconstruction's position noise {1e3 * fit.sigma_ref:.1f} mm, "
-              f"chi^2/dof {fit.chi2_dof:.2f}")
+              f"{fit.ba.round(3).tolist()} m/s^2 (walking {fit.accel_bias_walk:.3g} m/s^2/sqrt(s), up to "
+              f"{fit.ba_spread:.3f} from that), IMU noise {fit.imu_noise_factor:.2f}x the model's, the "
+              f"reconstruction's position noise {1e3 * fit.sigma_ref:.1f} mm, chi^2/dof {fit.chi2_dof:.2f}")
         print(f"vi3 reference: halves: {a.scale:.6g} +- {100 * a.rel_sigma:.2f} % and {b.scale:.6g} +- "
               f"{100 * b.rel_sigma:.2f} %: {abs(z):.1f} sigma apart; wrote {args.output}")
     return 0
