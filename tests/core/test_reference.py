@@ -76,6 +76,20 @@ def test_a_drifting_accelerometer_bias_is_followed(v102):
     assert np.isfinite(fit.sigma_ref) and fit.sigma_ref < 1e-3
 
 
+def test_the_accelerometer_matrix_is_recovered(v102, fitted):
+    """An accelerometer read through a known matrix (scale factors of 1-2 %, cross-axis terms of 2-5 %, as an
+    uncalibrated consumer IMU's): the fit with ``accel_intrinsics`` finds that matrix times what it finds for the real
+    IMU itself, and the same scale."""
+    stamps, T, fit = fitted
+    A = np.array([[1.02, 0.04, 0.0], [-0.05, 0.99, 0.03], [0.0, 0.02, 1.01]])
+    imu = dataclasses.replace(v102.imu, accel=v102.imu.accel @ np.linalg.inv(A).T)
+    own, read = (fit_reference(stamps, T, i, v102.calib.T_BC, time_offset=fit.time_offset, accel_intrinsics=True)
+                 for i in (v102.imu, imu))
+    np.testing.assert_allclose(read.accel_matrix, A @ own.accel_matrix, atol=0.01)
+    assert abs(read.scale / own.scale - 1.0) < 0.005 and abs(own.scale / SCALE - 1.0) < 4 * own.rel_sigma
+    assert 0.0 < own.accel_matrix_sigma.max() < 0.05 and np.all(fit.accel_matrix == np.eye(3))
+
+
 def test_the_halves_agree_within_their_sigmas(v102, fitted):
     stamps, T, fit = fitted
     a, b = fit_halves(stamps, T, v102.imu, v102.calib.T_BC, time_offset=fit.time_offset)
@@ -122,6 +136,10 @@ def test_reference_then_eval_scores_a_recording_against_it(euroc_v102, v102, tmp
     assert len(t_ref) == report["keyframes"] and np.all(np.diff(t_ref) > 0)
     assert cli.main(["reference", str(euroc_v102), "--poses", str(poses), "-o", str(out)]) == 2
     assert "exists; pass --force" in capsys.readouterr().err
+    assert cli.main(["reference", str(euroc_v102), "--poses", str(poses), "-o", str(out), "--force",
+                     "--accel-intrinsics"]) == 0
+    text = capsys.readouterr().out
+    assert "accelerometer matrix (specific force = A x reading, rows) [+" in text and "halves:" in text
 
     runs = {}
     for name, extra in (("own", []), ("reference", ["--reference", str(out)])):

@@ -12,6 +12,10 @@ preintegrationTranslation between two keyframes):
     r_p = R_WB_k^T (p_k+1 - p_k - v_k dt - g dt^2 / 2) - dalpha_k(ba_k)
     r_b = ba_k+1 - ba_k                                   (the accelerometer bias's random walk)
 
+and, where asked, the accelerometer's matrix A (the specific force is A times the reading: an uncalibrated consumer
+IMU's scale factors and cross-axis terms, 5 % on a RealSense's, turn gravity into acceleration as the camera tilts)
+in dbeta and dalpha, with a prior about the identity.
+
 linear in the unknowns s, g (|g| fixed by a tangent-plane refinement), every interval's accelerometer bias ba_k and
 every keyframe's velocity v_k: one sparse weighted least squares. The gyro bias comes first, from the
 reconstruction's rotations against the gyro, and the time offset from the profile of that rotation fit over a grid of
@@ -28,7 +32,7 @@ has the halves agree within their combined sigmas.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -47,6 +51,9 @@ GRAVITY = 9.81
 PROBES = 24  # Hutchinson probes per variance component and iteration
 MAX_INTERVAL_S = 1.0  # keyframes further apart than this are not tied (a reconstruction that lost the camera)
 MIN_KEYFRAMES = 10
+# prior 1-sigma of the accelerometer matrix's elements about the identity, row-major: scale factors (the diagonal)
+# of a consumer IMU are good to 1-3 %, its cross-axis terms reach several percent
+ACCEL_MATRIX_SIGMA = np.where(np.eye(3, dtype=bool), 0.02, 0.1).ravel()
 
 
 @dataclass(frozen=True)
@@ -56,9 +63,11 @@ class ReferenceFit:
     accelerometer bias's mean over the record, ba_spread (m/s^2) the largest distance of its walk from that mean;
     time_offset: s, the IMU's stamps plus this are the camera's (t_cam = t_imu + time_offset); sigma_ref: the
     reconstruction's position noise, m; imu_noise_factor: the IMU noise model's sigmas are this times the given ones;
-    accel_bias_walk: m/s^2/sqrt(s), the bias's random walk (the three estimated); chi2_dof: the weighted residual per
-    degree of freedom (about 1 once the variance components are estimated); keyframes, intervals: what was fitted;
-    span: (first, last) keyframe stamp, s."""
+    accel_bias_walk: m/s^2/sqrt(s), the bias's random walk (the three estimated); accel_matrix [3,3]: the specific
+    force is this times the accelerometer's reading (its scale factors and cross-axis terms; the identity unless
+    fitted, ``fit_reference(accel_intrinsics=True)``), accel_matrix_sigma [3,3] its elements' 1-sigma; chi2_dof: the
+    weighted residual per degree of freedom (about 1 once the variance components are estimated); keyframes,
+    intervals: what was fitted; span: (first, last) keyframe stamp, s."""
 
     scale: float
     scale_sigma: float
@@ -74,6 +83,8 @@ class ReferenceFit:
     imu_noise_factor: float
     accel_bias_walk: float
     ba_spread: float
+    accel_matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
+    accel_matrix_sigma: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     @property
     def rel_sigma(self) -> float:
@@ -85,7 +96,8 @@ class ReferenceFit:
                 "time_offset_s": self.time_offset, "sigma_ref_m": self.sigma_ref, "chi2_dof": self.chi2_dof,
                 "keyframes": self.keyframes, "intervals": self.intervals, "span_s": list(self.span),
                 "imu_noise_factor": self.imu_noise_factor, "accel_bias_walk": self.accel_bias_walk,
-                "ba_spread": self.ba_spread}
+                "ba_spread": self.ba_spread, "accel_matrix": self.accel_matrix.tolist(),
+                "accel_matrix_sigma": self.accel_matrix_sigma.tolist()}
 
     def body_track(self, stamps: np.ndarray, T_WC: np.ndarray, T_BC: np.ndarray) -> np.ndarray:
         """The metric IMU body poses [n,4,4] of the reconstruction's cameras ``T_WC`` [n,4,4] (its units) at
@@ -103,11 +115,12 @@ class ReferenceFit:
 
 def fit_reference(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples, T_BC: np.ndarray, *,
                   noise: ImuNoiseModel | None = None, offsets: np.ndarray | None = None,
-                  time_offset: float | None = None) -> ReferenceFit:
+                  time_offset: float | None = None, accel_intrinsics: bool = False) -> ReferenceFit:
     """The batch fit (see the module docstring) of a reconstruction's camera poses ``T_WC`` [n,4,4] (camera to its
     world, its units) at ``stamps`` [n] s (camera clock, increasing) to ``imu`` (body frame, IMU clock), camera mount
     ``T_BC`` [4,4]. ``time_offset``: s, known (skips the search), else the best of ``offsets`` (s; default -0.2 to
-    0.2 s in 2 ms steps) refined to a fraction of a step. DataError naming what is missing."""
+    0.2 s in 2 ms steps) refined to a fraction of a step. ``accel_intrinsics``: also fit the accelerometer's matrix
+    (``ReferenceFit.accel_matrix``). DataError naming what is missing."""
     noise = noise or ImuNoiseModel()
     stamps, T_WC = _checked(stamps, T_WC, imu)
     R_WB = T_WC[:, :3, :3] @ np.asarray(T_BC, np.float64)[:3, :3].T
@@ -121,17 +134,25 @@ def fit_reference(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples, T_BC: n
     stamps, T_WC, R_WB = stamps[keep], T_WC[keep], R_WB[keep]
     bg = _gyro_bias(stamps - time_offset, R_WB, imu)
     pre = preintegrate(imu, stamps - time_offset, bg, jacobians=True)
-    return _solve(stamps, T_WC, R_WB, np.asarray(T_BC, np.float64), pre, noise, time_offset, bg)
+    # the specific force is linear in the reading: the preintegration of reading axis q put on axis j is the
+    # derivative of the deltas by the matrix's element (j, q)
+    parts = []
+    for j, q in np.ndindex(3, 3) if accel_intrinsics else ():
+        accel = np.zeros_like(imu.accel)
+        accel[:, j] = imu.accel[:, q]
+        parts.append(preintegrate(replace(imu, accel=accel), stamps - time_offset, bg))
+    return _solve(stamps, T_WC, R_WB, np.asarray(T_BC, np.float64), pre, noise, time_offset, bg, parts)
 
 
 def fit_halves(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples, T_BC: np.ndarray, *,
-               noise: ImuNoiseModel | None = None, time_offset: float) -> tuple[ReferenceFit, ReferenceFit]:
+               noise: ImuNoiseModel | None = None, time_offset: float,
+               accel_intrinsics: bool = False) -> tuple[ReferenceFit, ReferenceFit]:
     """``fit_reference`` of the first and the second half of the keyframes (by time) on their own, at the whole
     record's ``time_offset``."""
     stamps = np.asarray(stamps, np.float64)
     mid = 0.5 * (stamps[0] + stamps[-1])
-    return tuple(fit_reference(stamps[m], np.asarray(T_WC)[m], imu, T_BC, noise=noise, time_offset=time_offset)
-                 for m in (stamps <= mid, stamps > mid))
+    return tuple(fit_reference(stamps[m], np.asarray(T_WC)[m], imu, T_BC, noise=noise, time_offset=time_offset,
+                               accel_intrinsics=accel_intrinsics) for m in (stamps <= mid, stamps > mid))
 
 
 def _checked(stamps: np.ndarray, T_WC: np.ndarray, imu: ImuSamples) -> tuple[np.ndarray, np.ndarray]:
@@ -198,13 +219,13 @@ def _best_offset(stamps: np.ndarray, R_WB: np.ndarray, imu: ImuSamples, grid: np
 
 
 def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndarray, pre: Preintegration,
-           noise: ImuNoiseModel, time_offset: float, bg: np.ndarray) -> ReferenceFit:
+           noise: ImuNoiseModel, time_offset: float, bg: np.ndarray, parts: list[Preintegration]) -> ReferenceFit:
     """The fit of s, g (|g| = GRAVITY), ba_k, v_k (module docstring) by Gauss-Newton, with the reconstruction's true
     camera centres as unknowns too (c_k measured with noise sigma_ref): the scale multiplies the noisy side, and a
     least squares that took the measured centres as exact would shrink it (errors in variables: with a velocity per
     keyframe the positions enter twice differenced, their noise as large as gentle motion's acceleration); between
     Gauss-Newton solutions, the three groups' variances (IMU, bias walk, centres) by a Fisher-scoring step of their
-    restricted likelihood."""
+    restricted likelihood. ``parts``: the accelerometer matrix's nine derivatives (``fit_reference``), or empty."""
     n = len(stamps)
     k = _intervals(stamps)
     m = len(k)
@@ -232,10 +253,15 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     iS, iG, iA = 0, 1, 3
     iV = iA + 3 * m
     iC = iV + 3 * n
-    nx = iC + 3 * n
+    iM = iC + 3 * n
+    nM = len(parts)  # dA: the accelerometer matrix less the identity, row-major, with a prior of ACCEL_MATRIX_SIGMA
+    nx = iM + nM
+    Dv = np.stack([np.einsum("kij,kj->ki", RkT, P.beta[k + 1] - P.beta[k]) for P in parts], 2) if nM else None
+    Dp = (np.stack([np.einsum("kij,kj->ki", RkT, P.alpha[k + 1] - P.alpha[k] - P.beta[k] * dt[:, None])
+                    for P in parts], 2) if nM else None)
     rv, rp, rc, rb = (r0 + 3 * np.arange(q) for r0, q in ((0, m), (3 * m, m), (6 * m, n), (6 * m + 3 * n, m - 1)))
-    n_rows = 6 * m + 3 * n + 3 * (m - 1)
-    groups = {"imu": np.arange(6 * m), "walk": np.arange(6 * m + 3 * n, n_rows),
+    n_rows = 6 * m + 3 * n + 3 * (m - 1) + nM
+    groups = {"imu": np.arange(6 * m), "walk": np.arange(6 * m + 3 * n, n_rows - nM),
               "centres": np.arange(6 * m, 6 * m + 3 * n)}
 
     def jacobian(s_: float, g: np.ndarray, basis: np.ndarray, c_hat: np.ndarray) -> sp.csc_matrix:
@@ -263,15 +289,24 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
         put(rc, iC + 3 * np.arange(n), np.tile(np.eye(3), (n, 1, 1)))
         put(rb, iA + 3 * np.arange(1, m), eye)
         put(rb, iA + 3 * np.arange(m - 1), -eye)
+        if nM:
+            put(rv, iM, -Dv)
+            put(rp, iM, -Dp)
+            rows.append(n_rows - nM + np.arange(nM))
+            cols.append(iM + np.arange(nM))
+            vals.append(np.ones(nM))
         return sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                              shape=(n_rows, nx))
 
-    def residual(s_: float, g: np.ndarray, ba: np.ndarray, v: np.ndarray, c_hat: np.ndarray) -> np.ndarray:
+    def residual(s_: float, g: np.ndarray, ba: np.ndarray, v: np.ndarray, c_hat: np.ndarray,
+                 dA: np.ndarray) -> np.ndarray:
         r_v = (np.einsum("kij,kj->ki", RbT, v[k + 1] - v[k] - g * dt[:, None]) - dbeta
                - np.einsum("kij,kj->ki", Jb, ba))
         r_p = (np.einsum("kij,kj->ki", RbT, s_ * (c_hat[k + 1] - c_hat[k]) + dlever - v[k] * dt[:, None]
                          - 0.5 * g * dt[:, None] ** 2) - dalpha - np.einsum("kij,kj->ki", Ja, ba))
-        return np.concatenate([r_v.ravel(), r_p.ravel(), (c_hat - c).ravel(), (ba[1:] - ba[:-1]).ravel()])
+        if nM:
+            r_v, r_p = r_v - Dv @ dA, r_p - Dp @ dA
+        return np.concatenate([r_v.ravel(), r_p.ravel(), (c_hat - c).ravel(), (ba[1:] - ba[:-1]).ravel(), dA])
 
     # start: gravity as minus the mean specific force, the scale from the sizes of the accelerations (the
     # reconstruction's twice-differenced centres against the IMU's): only a starting point for Gauss-Newton
@@ -280,6 +315,7 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     ba = np.zeros((m, 3))
     v = np.gradient(s_ * c, stamps, axis=0)
     c_hat = c.copy()
+    dA = np.zeros(nM)
     step = float(np.median(np.linalg.norm(np.diff(c, axis=0), axis=1)))
     # the variance components: the IMU's (a factor on the noise model's densities), the bias walk's (a factor on its
     # accel_bias_walk) and the centres' (sigma_ref^2, reconstruction units); floored, so that a group the data do not
@@ -290,7 +326,7 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     def weights() -> np.ndarray:
         imu = np.repeat(np.concatenate([w_v, w_p]), 3) / math.sqrt(var["imu"])
         return np.concatenate([imu, np.full(3 * n, 1.0 / math.sqrt(var["centres"])),
-                               np.repeat(w_b, 3) / math.sqrt(var["walk"])])
+                               np.repeat(w_b, 3) / math.sqrt(var["walk"]), 1.0 / ACCEL_MATRIX_SIGMA[:nM]])
 
     def linearised():
         """(tangent basis of g, whitened Jacobian, whitened residual, the normal matrix's LU) at the current
@@ -301,7 +337,7 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
         # the normal matrix is symmetric positive definite: a symmetric ordering keeps its factor sparse (COLAMD's
         # made it 50x slower on 400 keyframes)
         N = (Jm.T @ Jm).tocsc()
-        return basis, Jm, w * residual(s_, g, ba, v, c_hat), spla.splu(
+        return basis, Jm, w * residual(s_, g, ba, v, c_hat, dA), spla.splu(
             N, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
     for _ in range(30):
@@ -313,7 +349,8 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
             g = GRAVITY * g / np.linalg.norm(g)
             ba = ba + dx[iA:iV].reshape(m, 3)
             v = v + dx[iV:iC].reshape(n, 3)
-            c_hat = c_hat + dx[iC:].reshape(n, 3)
+            c_hat = c_hat + dx[iC:iM].reshape(n, 3)
+            dA = dA + dx[iM:]
             if abs(dx[iS]) <= 1e-10 * abs(s_):
                 break
         # restricted maximum likelihood of the three variances by Fisher scoring in their logarithms (Helmert's
@@ -348,12 +385,19 @@ def _solve(stamps: np.ndarray, T_WC: np.ndarray, R_WB: np.ndarray, T_BC: np.ndar
     e0 = np.zeros(nx)
     e0[iS] = 1.0
     var_s = float(lu.solve(e0)[iS]) * max(chi2, 1.0)
+    A, A_sigma = np.eye(3), np.zeros((3, 3))
+    if nM:
+        A = A + dA.reshape(3, 3)
+        E = np.zeros((nx, nM))
+        E[iM + np.arange(nM), np.arange(nM)] = 1.0
+        A_sigma = np.sqrt(np.maximum(np.diag(lu.solve(E)[iM:]), 0.0) * max(chi2, 1.0)).reshape(3, 3)
     return ReferenceFit(scale=float(s_), scale_sigma=math.sqrt(max(var_s, 0.0)), g=g, bg=np.asarray(bg, np.float64),
                         ba=ba.mean(0), time_offset=float(time_offset), sigma_ref=float(s_ * math.sqrt(var["centres"])),
                         chi2_dof=chi2, keyframes=n, intervals=m, span=(float(stamps[0]), float(stamps[-1])),
                         imu_noise_factor=math.sqrt(var["imu"]),
                         accel_bias_walk=noise.accel_bias_walk * math.sqrt(var["walk"]),
-                        ba_spread=float(np.linalg.norm(ba - ba.mean(0), axis=1).max()))
+                        ba_spread=float(np.linalg.norm(ba - ba.mean(0), axis=1).max()), accel_matrix=A,
+                        accel_matrix_sigma=A_sigma)
 
 
 def _initial_scale(c: np.ndarray, stamps: np.ndarray, R_WB: np.ndarray, k: np.ndarray, dt: np.ndarray,

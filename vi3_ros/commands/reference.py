@@ -4,9 +4,10 @@
 unknown scale, in any world frame, stamped on the camera's clock as the frames are: COLMAP's structure from motion
 of the frames, or any SLAM system's keyframes). The batch visual-inertial fit (``vi3_core.eval.reference``) gives
 it its metric scale from the input's whole IMU record, with gravity, the biases and the camera-IMU time offset, and
-fits each half of the record on its own as a check of the scale's sigma. ``OUT`` receives the IMU body's metric
-poses in a gravity-aligned, z-up world at the reconstruction's stamps (the camera's clock, as the frames are
-stamped), for ``vi3 eval INPUT --reference OUT``.
+fits each half of the record on its own as a check of the scale's sigma; ``--accel-intrinsics`` also fits the
+accelerometer's scale factors and cross-axis terms (an uncalibrated IMU's, which otherwise pass into the scale).
+``OUT`` receives the IMU body's metric poses in a gravity-aligned, z-up world at the reconstruction's stamps (the
+camera's clock, as the frames are stamped), for ``vi3 eval INPUT --reference OUT``.
 
 Exit status: 0 when the fit was made (OUT written); 2 for an input, poses file, calibration or output that cannot be
 used; 130 / 143 when interrupted.
@@ -34,6 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--imu-topic", help="IMU topic of a bag (default: /imu0, else the only sensor_msgs/Imu topic)")
     p.add_argument("--time-offset", type=float, default=None, metavar="S",
                    help="camera stamp minus IMU stamp of one instant, s, when known (default: fitted)")
+    p.add_argument("--accel-intrinsics", action="store_true",
+                   help="also fit the accelerometer's scale factors and cross-axis terms (a 3x3 matrix; an "
+                        "uncalibrated consumer IMU's reach several percent)")
     p.add_argument("--output", "-o", required=True, help="the metric reference, a TUM file (never over an input)")
     p.add_argument("--force", action="store_true", help="replace an existing --output")
     p.add_argument("--json", action="store_true", help="print the fit and its halves as JSON")
@@ -66,6 +70,10 @@ def run(args: argparse.Namespace) -> int:
               f"{fit.ba.round(3).tolist()} m/s^2 (walking {fit.accel_bias_walk:.3g} m/s^2/sqrt(s), up to "
               f"{fit.ba_spread:.3f} from that), IMU noise {fit.imu_noise_factor:.2f}x the model's, the "
               f"reconstruction's position noise {1e3 * fit.sigma_ref:.1f} mm, chi^2/dof {fit.chi2_dof:.2f}")
+        if args.accel_intrinsics:
+            rows = "; ".join(" ".join(f"{x:+.4f}" for x in row) for row in fit.accel_matrix)
+            print(f"vi3 reference: accelerometer matrix (specific force = A x reading, rows) [{rows}], its elements "
+                  f"+- {fit.accel_matrix_sigma.min():.4f}..{fit.accel_matrix_sigma.max():.4f}")
         print(f"vi3 reference: halves: {a.scale:.6g} +- {100 * a.rel_sigma:.2f} % and {b.scale:.6g} +- "
               f"{100 * b.rel_sigma:.2f} %: {abs(z):.1f} sigma apart; wrote {args.output}")
     return 0
@@ -95,8 +103,8 @@ def _fit(args: argparse.Namespace):
     stamps, T_WC = read_tum(args.poses)
     imu = imu_samples(e for e in iter_events(args.input, imu=TopicRequest(args.imu_topic))
                       if isinstance(e, ImuEvent))
-    fit = fit_reference(stamps, T_WC, imu, T_BC, time_offset=args.time_offset)
-    halves = fit_halves(stamps, T_WC, imu, T_BC, time_offset=fit.time_offset)
+    fit = fit_reference(stamps, T_WC, imu, T_BC, time_offset=args.time_offset, accel_intrinsics=args.accel_intrinsics)
+    halves = fit_halves(stamps, T_WC, imu, T_BC, time_offset=fit.time_offset, accel_intrinsics=args.accel_intrinsics)
     inside = (stamps >= fit.span[0]) & (stamps <= fit.span[1])
     write_tum(out, stamps[inside], fit.body_track(stamps[inside], T_WC[inside], T_BC))
     return fit, halves, len(stamps)
