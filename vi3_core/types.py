@@ -84,6 +84,11 @@ class ImuSamples:
         t_ns = None if self.t_ns is None else self.t_ns + round(dt * 1e9)
         return ImuSamples(self.t + dt, self.gyro, self.accel, self.orientation, t_ns)
 
+    def read_through(self, A: np.ndarray) -> ImuSamples:
+        """The samples with the accelerometer's calibration applied: accel = A [3,3] times the reading (its scale
+        factors and cross-axis terms, e.g. ``vi3 reference --accel-intrinsics``)."""
+        return ImuSamples(self.t, self.gyro, self.accel @ np.asarray(A, np.float64).T, self.orientation, self.t_ns)
+
     def select(self, idx) -> ImuSamples:
         """Rows ``idx`` (slice, index array or boolean mask)."""
         ori = None if self.orientation is None else self.orientation[idx]

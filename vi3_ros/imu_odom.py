@@ -114,6 +114,7 @@ class ImuOdometry:
                                          child_frame_id=settings.frames.base_frame, types=types)
         # dead reckoning is trusted for as long as the window bridges a gap between clips
         self.options, self.max_tau_s = settings.init, settings.online.online_max_bridge
+        self.accel_A = settings.init.accel_A  # the accelerometer's calibration (None: none)
 
         self._publish, self.flight = publish, flight
         self._lock = threading.Lock()
@@ -147,6 +148,8 @@ class ImuOdometry:
             if not self._take_epoch(epoch):
                 return
             imu = imu_since(prop.t_c)
+            if imu is not None and self.accel_A is not None:
+                imu = imu.read_through(self.accel_A)
             self._caught_up = prop.advance_states(imu) if imu is not None else []
             self._prop, self._sigmas, self._anchor = prop, sigmas, anchor
 
@@ -164,6 +167,8 @@ class ImuOdometry:
             if prop is None or prop.stopped:
                 return
             # ``restart`` may have caught up through this sample already (it came in between)
+            if self.accel_A is not None:
+                accel = self.accel_A @ np.asarray(accel, np.float64)
             s = prop.step(stamp_ns * 1e-9, gyro, accel) or _state_at(self._caught_up, stamp_ns)
             if s is None:
                 return

@@ -245,6 +245,8 @@ PARAMS: tuple[Param, ...] = (
             range=(0.0, 10.0)),
     Param("gyro_bias_walk", InitOptions, "rad/s/sqrt(s); gyro bias random walk",
             range=(0.0, 10.0)),
+    Param("accel_matrix", InitOptions, "accelerometer calibration: 9 numbers row-major, specific force = A x "
+            "reading (vi3 reference --accel-intrinsics); empty: none"),
     Param("time_offset_sigma", InitOptions, "s; how far the camera-IMU time offset (time_offset, Kalibr "
           "timeshift_cam_imu) may be off: the error model estimates the rest and widens every scale's sigma by what it "
           "cannot rule out", range=(1e-6, 1.0)),

@@ -14,7 +14,7 @@ from vi3_core.backbones.ground_truth import GroundTruthPoses
 from vi3_core.dataset.sequence import make_clip
 from vi3_core.eval.runner import EvalOptions, clip_indices, evaluate_clip
 from vi3_core.fit.noise import ImuNoiseModel
-from vi3_core.init import initialise_clip
+from vi3_core.init import InitOptions, initialise_clip
 from vi3_core.online import StreamEstimator
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.visual import PoseNoise
@@ -29,12 +29,12 @@ def test_no_folder_images_but_camera_stamps_on_the_imu_clock(v102):
         v102.image(0)
 
 
-def _chained(seq, noise: PoseNoise, *, seed: int = 0, max_clips: int | None = None):
+def _chained(seq, noise: PoseNoise, *, seed: int = 0, max_clips: int | None = None, init: InitOptions | None = None):
     """The sliding clips of ``seq`` (each sharing its first frame with the one before) through the pose instrument
     and the stream estimator, as ``vi3 eval`` runs them: yields (clip, the instrument's base geometry, its true metres
     per model unit, the window's InitResult)."""
     instrument = GroundTruthPoses(noise=noise, seed=seed)
-    stream = StreamEstimator(instrument)
+    stream = StreamEstimator(instrument, init=init)
     for idx in clip_indices(len(seq), options=EvalOptions(clips="sliding"), chained=True)[:max_clips]:
         clip = make_clip(seq, idx, history_s=stream.online_options.online_max_bridge, with_images=False)
         out = stream.process(clip)
@@ -105,6 +105,27 @@ def test_the_window_does_not_amplify_round_off(v102):
     assert [s for s, _ in runs[0]] == [s for s, _ in runs[1]]
     assert sum(s.value == "ok" for s, _ in runs[0]) >= 10
     assert all(abs(a / b - 1) < 0.01 for (_, a), (_, b) in zip(*runs) if np.isfinite(a) and np.isfinite(b))
+
+
+def test_the_accelerometer_matrix_undoes_an_accelerometer_read_through_it(v102):
+    """The real V1_02 accelerometer read through a matrix of 1-2 % scale factors and 2-5 % cross-axis terms (an
+    uncalibrated consumer IMU's): with that matrix as ``accel_matrix`` the window's statuses and scales are those of
+    the IMU as recorded (to round-off); without it they are not."""
+    import dataclasses
+
+    A = np.array([[1.02, 0.04, 0.0], [-0.05, 0.99, 0.03], [0.0, 0.02, 1.01]])
+    read = dataclasses.replace(v102, imu=v102.imu.read_through(np.linalg.inv(A)))
+    matrix = InitOptions(accel_matrix=" ".join(repr(float(x)) for x in A.ravel()))
+    runs = [[(init.status, init.scale) for *_, init in _chained(seq, PoseNoise(pos_m=0.001, rot_deg=0.05), seed=1,
+                                                                  max_clips=20, init=options)]
+            for seq, options in ((v102, None), (read, matrix), (read, None))]
+    assert [s for s, _ in runs[0]] == [s for s, _ in runs[1]] and sum(s.value == "ok" for s, _ in runs[0]) >= 10
+    assert all(abs(a / b - 1) < 1e-6 for (_, a), (_, b) in zip(runs[0], runs[1]) if np.isfinite(a) and np.isfinite(b))
+    assert max(abs(a / b - 1) for (_, a), (_, b) in zip(runs[0], runs[2]) if np.isfinite(a) and np.isfinite(b)) > 0.01
+    with pytest.raises(ValueError, match="accel_matrix must be 9 numbers"):
+        InitOptions(accel_matrix="1 0 0 0 1 0")
+    with pytest.raises(ValueError, match="is no accelerometer calibration"):
+        InitOptions(accel_matrix="1 0 0 0 1 0 0 0 nan")
 
 
 @pytest.mark.slow

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from vi3_core.fit.noise import ImuNoiseModel
 
 GRAVITY_NORM = 9.81
@@ -38,6 +40,10 @@ class InitOptions:
             scale_rel_floor, accel_bias_walk, gyro_bias_walk, time_offset_sigma: the IMU error model of the "eiv" fit
             (``ImuNoiseModel``; scale_rel_floor is its ``rel_floor``; time_offset_sigma, s, how far the configured
             camera-IMU time offset may be off: the fit estimates the rest and widens the scale's sigma by it).
+        accel_matrix: the accelerometer's calibration, 9 numbers row-major (commas or spaces), the specific force
+            being this matrix times the reading (scale factors, cross-axis terms: ``vi3 reference
+            --accel-intrinsics``, Kalibr's or the IMU maker's calibration); "" for none. Applied to every clip's IMU
+            (``StreamEstimator``) and the node's IMU-rate odometry.
         visual_drift: the online window estimates a random walk of the backbone's positions (temporally correlated
             errors: a scale drifting inside a clip, a depth-dependent bias) beside each clip's white noise, from the
             residuals of all its clips, and widens the scales' sigmas by it.
@@ -72,6 +78,7 @@ class InitOptions:
     accel_bias_walk: float = ImuNoiseModel.accel_bias_walk
     gyro_bias_walk: float = ImuNoiseModel.gyro_bias_walk
     time_offset_sigma: float = ImuNoiseModel.time_offset_sigma
+    accel_matrix: str = ""
     visual_drift: bool = True
     max_scale_sigma: float = 0.04
     max_rotation_error: float = 2.0
@@ -92,6 +99,23 @@ class InitOptions:
         if not (self.max_scale_sigma > 0 and self.max_rotation_error > 0):
             raise ValueError("max_scale_sigma and max_rotation_error must be > 0")
         _ = self.noise_model  # validates the error model's values
+        _ = self.accel_A  # validates the accelerometer's matrix
+
+    @property
+    def accel_A(self) -> np.ndarray | None:
+        """[3,3] ``accel_matrix`` (specific force = A times the accelerometer's reading), None for the identity."""
+        text = self.accel_matrix.replace(",", " ").split()
+        if not text:
+            return None
+        try:
+            A = np.array([float(x) for x in text]).reshape(3, 3)
+        except ValueError:
+            raise ValueError(f"accel_matrix must be 9 numbers (row-major, specific force = A x reading), "
+                             f"got {self.accel_matrix!r}") from None
+        if not np.isfinite(A).all() or not 0.5 < np.linalg.det(A) < 2.0 or np.abs(A - np.eye(3)).max() > 0.5:
+            raise ValueError(f"accel_matrix {self.accel_matrix!r} is no accelerometer calibration (finite, within 0.5 "
+                             "of the identity, determinant in (0.5, 2))")
+        return None if np.array_equal(A, np.eye(3)) else A
 
     @property
     def noise_model(self) -> ImuNoiseModel:

@@ -153,6 +153,10 @@ class StreamEstimator:
         result when it is ok, before ``cond``/``ttr`` refine it (the node publishes it at once). ``before_backbone``
         is called once the clip passed the data checks; when it returns False the clip is abandoned (None: nothing
         changed). Bad data never raises: it is the outcome's ``init`` status."""
+        A = self.init_options.accel_A
+        if A is not None:  # the accelerometer's calibration (InitOptions.accel_matrix)
+            history = None if clip.imu_history is None else clip.imu_history.read_through(A)
+            clip = dataclasses.replace(clip, imu=clip.imu.read_through(A), imu_history=history)
         configured = self._compose(clip)
         current = self.calibrator.estimate if self.calibrator is not None else None
         rig = current.for_clip(configured) if current is not None else None
