@@ -16,6 +16,7 @@ from vi3_core.errors import DataError
 from vi3_core.eval.reference import fit_halves, fit_reference
 from vi3_core.eval.tum import read_tum, write_tum
 from vi3_core.fit.noise import ImuNoiseModel
+from vi3_core.init import InitOptions
 from vi3_ros import cli
 
 SCALE = 0.25  # metres per reconstruction unit
@@ -140,6 +141,8 @@ def test_reference_then_eval_scores_a_recording_against_it(euroc_v102, v102, tmp
                      "--accel-intrinsics"]) == 0
     text = capsys.readouterr().out
     assert "accelerometer matrix (specific force = A x reading, rows) [+" in text and "halves:" in text
+    matrix = text.split('--param accel_matrix="')[1].split('"')[0]
+    assert InitOptions(accel_matrix=matrix).accel_A is not None  # what it prints, the node takes
 
     runs = {}
     for name, extra in (("own", []), ("reference", ["--reference", str(out)])):

@@ -73,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
         if args.accel_intrinsics:
             rows = "; ".join(" ".join(f"{x:+.4f}" for x in row) for row in fit.accel_matrix)
             print(f"vi3 reference: accelerometer matrix (specific force = A x reading, rows) [{rows}], its elements "
-                  f"+- {fit.accel_matrix_sigma.min():.4f}..{fit.accel_matrix_sigma.max():.4f}")
+                  f"+- {fit.accel_matrix_sigma.min():.4f}..{fit.accel_matrix_sigma.max():.4f}; for the node: "
+                  f"--param accel_matrix=\"{' '.join(f'{x:.6f}' for x in fit.accel_matrix.ravel())}\"")
         print(f"vi3 reference: halves: {a.scale:.6g} +- {100 * a.rel_sigma:.2f} % and {b.scale:.6g} +- "
               f"{100 * b.rel_sigma:.2f} %: {abs(z):.1f} sigma apart; wrote {args.output}")
     return 0
