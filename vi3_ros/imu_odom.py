@@ -166,9 +166,9 @@ class ImuOdometry:
             prop, anchor = self._prop, self._anchor
             if prop is None or prop.stopped:
                 return
-            # ``restart`` may have caught up through this sample already (it came in between)
             if self.accel_A is not None:
                 accel = self.accel_A @ np.asarray(accel, np.float64)
+            # ``restart`` may have caught up through this sample already (it came in between)
             s = prop.step(stamp_ns * 1e-9, gyro, accel) or _state_at(self._caught_up, stamp_ns)
             if s is None:
                 return

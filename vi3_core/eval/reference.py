@@ -12,12 +12,11 @@ preintegrationTranslation between two keyframes):
     r_p = R_WB_k^T (p_k+1 - p_k - v_k dt - g dt^2 / 2) - dalpha_k(ba_k)
     r_b = ba_k+1 - ba_k                                   (the accelerometer bias's random walk)
 
-and, where asked, the accelerometer's matrix A (the specific force is A times the reading: an uncalibrated consumer
-IMU's scale factors and cross-axis terms, 5 % on a RealSense's, turn gravity into acceleration as the camera tilts)
-in dbeta and dalpha, with a prior about the identity.
-
 linear in the unknowns s, g (|g| fixed by a tangent-plane refinement), every interval's accelerometer bias ba_k and
-every keyframe's velocity v_k: one sparse weighted least squares. The gyro bias comes first, from the
+every keyframe's velocity v_k: one sparse weighted least squares. Where asked, the accelerometer's matrix A joins
+them (the specific force is A times the reading: an uncalibrated consumer IMU's scale factors and cross-axis terms,
+5 % on a RealSense's, turn gravity into acceleration as the camera tilts), in dbeta and dalpha, with a prior about
+the identity. The gyro bias comes first, from the
 reconstruction's rotations against the gyro, and the time offset from the profile of that rotation fit over a grid of
 offsets. Weights: the IMU's noise (``ImuNoiseModel``, the velocity change's sigma per interval and the position's,
 both with the gyro scale error of the angle turned), the bias walk's (``accel_bias_walk``) and the reconstruction's

@@ -102,6 +102,7 @@ class StreamEstimator:
         self.backbone = backbone
         self.online_options = online or OnlineOptions()
         self.init_options = init or InitOptions()
+        self.accel_A = self.init_options.accel_A  # the accelerometer's calibration (None: none), parsed once
         self.anchor_options = anchor or AnchorOptions()
         self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options) \
             if self.options.online else None
@@ -153,8 +154,8 @@ class StreamEstimator:
         result when it is ok, before ``cond``/``ttr`` refine it (the node publishes it at once). ``before_backbone``
         is called once the clip passed the data checks; when it returns False the clip is abandoned (None: nothing
         changed). Bad data never raises: it is the outcome's ``init`` status."""
-        A = self.init_options.accel_A
-        if A is not None:  # the accelerometer's calibration (InitOptions.accel_matrix)
+        A = self.accel_A
+        if A is not None:
             history = None if clip.imu_history is None else clip.imu_history.read_through(A)
             clip = dataclasses.replace(clip, imu=clip.imu.read_through(A), imu_history=history)
         configured = self._compose(clip)
