@@ -252,6 +252,8 @@ PARAMS: tuple[Param, ...] = (
           "cannot rule out", range=(1e-6, 1.0)),
     Param("visual_drift", InitOptions, "the online window estimates a random walk of the backbone's positions "
           "(errors correlated in time) from its clips' residuals and widens the scales' sigmas by it"),
+    Param("noise_levels", InitOptions, "the online window estimates the IMU's and the visual noise's levels from its "
+          "clips' residuals and fits the scales by errors in variables"),
     Param("scale_rel_floor", InitOptions, "relative scale error the error model does not see "
             "(added to every sigma)", range=(0.0, 1.0)),
     Param("min_accel_rms", InitOptions, "m/s^2; below it scale is unobservable and the clip is "

@@ -14,8 +14,9 @@ from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps, marginal
 from vi3_core.fit.layout import PriorLayout
 from vi3_core.fit.prior import GaussianPrior, sqrt_of_info
 from vi3_core.init import InitOptions, initialise
+from vi3_core.online.window import Member, Window
 from vi3_core.preintegration import preintegrate
-from vi3_core.sim.imu import ImuNoise, imu_stamps, simulate_imu
+from vi3_core.sim.imu import EUROC_NOISE, ImuNoise, imu_stamps, simulate_imu
 from vi3_core.sim.trajectory import make_trajectory
 from vi3_core.sim.visual import PoseNoise, make_init_case, noisy_poses
 
@@ -88,13 +89,14 @@ def test_visual_noise_is_recovered_from_the_clips_own_residuals():
         assert 0.75 * pos < np.median(found) < 1.25 * pos, (pos, np.median(found))
 
 
-def _window_case(seed: int, n_clips: int, pose_noise: PoseNoise, *, ba=(0.1, -0.05, 0.08)):
+def _window_case(seed: int, n_clips: int, pose_noise: PoseNoise, *, ba=(0.1, -0.05, 0.08),
+                 imu_noise: ImuNoise = EUROC_NOISE):
     """Consecutive 8-frame clips (stride 2 at 20 Hz, one every 0.8 s) of one simulated flight, each with its own
     scale: (imu, clips, true scales, true bg, true gravity [K,3] in each clip's first body frame, T_BC)."""
     rng = np.random.default_rng(seed)
     traj = make_trajectory("drone", seed=seed)
     starts = 5.0 + 0.8 * np.arange(n_clips)
-    imu = simulate_imu(traj, imu_stamps(4.9, starts[-1] + 0.8), bg0=np.array([0.01, -0.02, 0.015]),
+    imu = simulate_imu(traj, imu_stamps(4.9, starts[-1] + 0.8), noise=imu_noise, bg0=np.array([0.01, -0.02, 0.015]),
                        ba0=np.asarray(ba), seed=seed)
     T_BC = make_init_case(0).T_BC
     scales = np.exp(rng.uniform(-1.0, 1.0, n_clips))
@@ -108,11 +110,11 @@ def _window_case(seed: int, n_clips: int, pose_noise: PoseNoise, *, ba=(0.1, -0.
     return imu.samples, clips, scales, imu.bg[0], g, T_BC
 
 
-def _solve_window(imu, clips, bg, g, T_BC, sigma_v, priors=()):
-    """``sigma_v``: each clip's visual noise in its model units [K] (or one value for all)."""
+def _solve_window(imu, clips, bg, g, T_BC, sigma_v, priors=(), **options):
+    """``sigma_v``: each clip's visual noise in its model units [K] (or one value for all); ``options``: MetricFit's."""
     clips = [FitClip(c.stamps, c.T_wc, s) for c, s in zip(clips, np.broadcast_to(sigma_v, len(clips)))]
     pre = preintegrate(imu.window(clips[0].stamps[0], clips[-1].stamps[-1]), fit_stamps(clips), bg, jacobians=True)
-    fit = MetricFit(clips, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81)
+    fit = MetricFit(clips, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81, **options)
     return fit, fit.solve(fit.initial_state(g), priors=priors)
 
 
@@ -134,6 +136,66 @@ def test_window_makes_weak_clips_observable_that_are_not_on_their_own():
         own.append(fit.solve(fit.initial_state(g_k)).scale_rel_sigma[0])
     _, res = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
     assert np.median(res.scale_rel_sigma) < 0.5 * np.median(own), (res.scale_rel_sigma, own)
+
+
+@pytest.mark.parametrize("walk", [0.0, 1e-5])
+def test_errors_in_variables_jacobian_is_the_derivative_of_the_whitened_residual(walk):
+    """With the levels estimated, each scale's column carries the whitening's own dependence on it (the IMU's part of
+    the visual rows' covariance grows with lam^2): it matches a finite difference of the whitened residual, with the
+    visual rows whitened by weights (no walk) or by a Cholesky factor (a walk); without it, it does not."""
+    imu, clips, scales, bg, g, T_BC = _window_case(1, 5, REALISTIC)
+    clips = [FitClip(c.stamps, c.T_wc, 0.003 / s) for c, s in zip(clips, scales)]
+    pre = preintegrate(imu.window(clips[0].stamps[0], clips[-1].stamps[-1]), fit_stamps(clips), bg, jacobians=True)
+    sigma_v = 0.003 / scales
+    for levels in (True, False):
+        fit = MetricFit(clips, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81, estimate_levels=levels)
+        fit.walk, fit.imu_level = walk, 3.0
+        s = fit.initial_state(g[0])
+        y, A, _, _ = fit.linearise(s, sigma_v, ())
+        col, h = fit.layout.lam(2), 1e-6 * s.lam[2]
+        moved = s.copy()
+        moved.lam[2] += h
+        fd = (fit.linearise(moved, sigma_v, ())[0] - y) / h
+        err = np.abs(fd - A[:, col]).max() / np.abs(A[:, col]).max()
+        assert (err < 1e-5) if levels else (err > 1e-3), (levels, err)
+
+
+def _online_levels(seed: int, accel_noise_density: float, levels: bool):
+    """A 24 s flight of 30 clips, 0.5 mm / 0.02 deg pose noise (where the IMU's part of the error model matters) and an
+    IMU at ``accel_noise_density`` against the model's 0.02, fed clip by clip to an online ``Window`` (8 s, as the
+    estimator does): (each clip's scale error and relative sigma when it was the newest, from the 10th clip on; the
+    window's final noise levels)."""
+    imu, clips, scales, bg, g, T_BC = _window_case(seed, 30, PoseNoise(pos_m=0.0005, rot_deg=0.02),
+                                                   imu_noise=ImuNoise(accel_noise_density=accel_noise_density))
+    window = Window(noise=ImuNoiseModel(), gravity_norm=9.81, window_s=8.0, max_clips=12, noise_levels=levels)
+    err, rel = [], []
+    for k, (clip, scale) in enumerate(zip(clips, scales)):
+        member = Member(clip.stamps, clip.T_wc, 0.0005 / scale, float("nan"), np.full(3, np.nan), g[k])
+        sol = window.solve(member, imu, bg, 5e-4, T_BC)
+        window.commit(sol)
+        if k >= 10:
+            err.append(sol.result.scale[-1] / scale - 1)
+            rel.append(sol.result.scale_rel_sigma[-1])
+    return np.array(err), np.array(rel), window.levels
+
+
+@pytest.mark.slow
+def test_online_window_learns_the_imu_level_and_is_not_attenuated_by_a_noisy_imu():
+    """An IMU three times noisier than the model says (a level of 9): with the model's level the window's scales are
+    attenuated (biased high, their sigmas too small: 75 % within 2 sigma); with ``noise_levels`` the level learnt over
+    the flight comes out near 9 and the errors are covered (the clips of a window share their errors, so 40 clips of
+    two flights centre only to about half a sigma). An IMU a third as noisy (a level of 0.09): the level is learnt,
+    and the scales, fitted at it, stay covered by sigmas that take the IMU at no less than its model."""
+    err, rel, _ = _online_levels(0, 0.06, False)
+    assert np.median(err / rel) > 0.5 and np.mean(np.abs(err) < 2 * rel) < 0.8, (np.median(err / rel), np.median(rel))
+    runs = [_online_levels(seed, 0.06, True) for seed in (0, 1)]
+    err, rel = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
+    assert all(3.0 < r[2][0] < 27.0 for r in runs), [r[2] for r in runs]
+    assert abs(np.median(err / rel)) < 0.6 and np.mean(np.abs(err) < 2 * rel) >= 0.85, \
+        (np.median(err / rel), np.median(rel))
+    err, rel, levels = _online_levels(0, 0.006, True)
+    assert levels[0] < 0.3 and abs(np.median(err / rel)) < 0.5 and np.mean(np.abs(err) < 2 * rel) >= 0.9, \
+        (levels, np.median(err / rel))
 
 
 def test_marginalising_old_clips_keeps_their_evidence():

@@ -85,6 +85,15 @@ def test_euroc_config_loads_and_maps_to_buffer_options():
     np.testing.assert_allclose(calib.T_BC, EUROC_CAM0.T_BC)
 
 
+def test_realsense_config_loads_and_learns_the_noise_levels():
+    """config/realsense.yaml: a camera with a consumer IMU; its estimation settings reach the options (the noise
+    levels learnt, no accelerometer matrix until one is given)."""
+    settings = resolve(load_yaml(REPO / "config" / "realsense.yaml"))
+    assert settings.init.noise_levels and settings.init.accel_A is None
+    assert settings.inputs.imu_topic == "/camera/camera/imu" and settings.inputs.use_tf_static
+    assert resolve().init.noise_levels is False  # the default keeps the model's levels
+
+
 def test_bad_parameter_file(tmp_path):
     bad = tmp_path / "p.yaml"
     bad.write_text("vi3_node:\n  ros__parameters:\n    strde: 3\n")

@@ -26,7 +26,9 @@ Gauss-Newton.
 
 Error model (``ImuNoiseModel``): e_ki ~ N(0, sigma_v,k^2) per axis, the clip's visual noise, estimated from the clip's
 own residuals by restricted maximum likelihood when not given; plus lam_k^2 times the IMU's position covariance
-(accelerometer noise integrated twice, and a gyro scale error that tilts gravity by kappa times the angle turned).
+(accelerometer noise integrated twice, and a gyro scale error that tilts gravity by kappa times the angle turned),
+each optionally times a level the online window estimates (``MetricFit``'s estimate_levels): a real IMU is rarely at
+its model's level, and where the IMU's part matters a wrong level biases the scale (below, and ``_whiten``).
 Velocity ties carry the accelerometer and gyro noise over their interval and the same scale-error term. The scale's
 relative 1-sigma is the Gauss-Newton covariance of lam_k, inflated by the Student-t 97.5 % quantile for the residual
 degrees of freedom (over 1.96) and by the a-posteriori variance factor when the residuals exceed the model, combined
@@ -100,7 +102,9 @@ class FitResult:
     cov: covariance of the parameters (``StateLayout(K)``'s columns); tangent [3,2]: the basis of
     g's tangent plane that cov refers to; converged: Gauss-Newton met its tolerance; link_chi2, link_dof [K-1]: the
     velocity ties' whitened residual and degrees of freedom (tie k-1 joins clips k-1 and k); scale_chi2, scale_dof
-    [K-1]: the same of the scale links (NaN where clips k-1 and k have none).
+    [K-1]: the same of the scale links (NaN where clips k-1 and k have none); level_score [2], level_info [2,2]:
+    with ``estimate_levels``, the restricted likelihood's score and information in the logarithms of the IMU's and the
+    visual noise's levels at the solution (what the window says about them, ``vi3_core.online.window``; else empty).
     """
 
     state: FitState
@@ -117,6 +121,8 @@ class FitResult:
     link_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
     scale_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     scale_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    level_score: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    level_info: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def layout(self) -> StateLayout:
@@ -154,11 +160,14 @@ class MetricFit:
     mean and the linearisation point of the gyro bias, and bg_sigma (rad/s, floored at ``noise.gyro_bias_sigma``)
     that estimate's 1-sigma; T_BC [4,4]; scale_links [K-1]: the ``ScaleLink`` between clips k-1 and k at k-1, or
     None where they have none (empty: none at all); estimate_walk: estimate a random walk of the backbone's positions
-    (``solve``)."""
+    (``solve``); estimate_levels: the noise levels ``imu_level`` and ``visual_level`` (factors on the IMU's position
+    covariance and on every clip's sigma_v^2, set by the caller: an online estimate of the sensors') are the data's,
+    so the objective is the errors-in-variables one (``_whiten``) and ``solve`` reports what the fit says about them
+    (``FitResult.level_score``); the covariance takes the IMU's level at no less than the model's (``solve``)."""
 
     def __init__(self, clips: list[FitClip], pre: Preintegration, T_BC: np.ndarray, *, noise: ImuNoiseModel,
                  gravity_norm: float, bg_sigma: float = 0.0, scale_links: Sequence[ScaleLink | None] = (),
-                 estimate_walk: bool = False) -> None:
+                 estimate_walk: bool = False, estimate_levels: bool = False) -> None:
         if pre.J is None or not np.array_equal(pre.stamps, fit_stamps(clips)):
             raise ValueError("MetricFit: pre must be preintegrate(imu, fit_stamps(clips), bg, jacobians=True)")
         if scale_links and len(scale_links) != len(clips) - 1:
@@ -199,7 +208,8 @@ class MetricFit:
         self._bias_rows[6, L.td] = 1.0 / noise.time_offset_sigma
         self.link_scale = 1.0  # the ties' sigma relative to the noise model (variance component, see ``solve``)
         self.walk = 0.0  # m^2/s: the variance rate of a random walk of the backbone's positions (``solve``)
-        self.estimate_walk = estimate_walk
+        self.imu_level = self.visual_level = 1.0  # the noise levels (see above)
+        self.estimate_walk, self.estimate_levels = estimate_walk, estimate_levels
         f = np.array([b.first for b in self.blocks])
         f0, f1 = f[:-1], f[1:]
         dt = pre.tau[f1] - pre.tau[f0]
@@ -301,17 +311,24 @@ class MetricFit:
 
     def _whitener(self, s: FitState, sigma_v: np.ndarray, k: int) -> np.ndarray:
         """[n] weights, or [n,n] matrix W, that whiten clip k's visual rows (on the modes of its IMU position
-        covariance, per axis): their covariance is sigma_v,k^2 I + lam_k^2 (D + walk M), D the modes' IMU position
-        variances, M the random walk's kernel on them; W W^T = covariance^-1 (W = L^-1, L its Cholesky factor)."""
+        covariance, per axis): their covariance is C = visual_level sigma_v,k^2 I + lam_k^2 (imu_level D + walk M),
+        D the modes' IMU position variances, M the random walk's kernel on them; W W^T = C^-1 (W = L^-1, L its
+        Cholesky factor)."""
         blk = self.blocks[k]
-        var = sigma_v[k] ** 2 + s.lam[k] ** 2 * blk.imu_var
+        var = self.visual_level * sigma_v[k] ** 2 + s.lam[k] ** 2 * self.imu_level * blk.imu_var
         if self.walk == 0.0:
             return 1.0 / np.sqrt(var)
         C = np.diag(var) + (s.lam[k] ** 2 * self.walk) * blk.walk_modes
         return solve_triangular(np.linalg.cholesky(C), np.eye(len(var)), lower=True)
 
-    def _whiten(self, s: FitState, sigma_v: np.ndarray, y: np.ndarray, A: np.ndarray) -> None:
-        """Whiten ``_model``'s visual rows of y [m] and A [m, p] in place (``_whitener``); the others are already."""
+    def _whiten(self, s: FitState, sigma_v: np.ndarray, y: np.ndarray, A: np.ndarray, eiv: bool) -> None:
+        """Whiten ``_model``'s visual rows of y [m] and A [m, p] in place (``_whitener``); the others are already.
+        With ``eiv`` the objective is the errors-in-variables one: the whitening's own dependence on
+        lam_k (its IMU terms grow with lam_k^2) joins lam_k's column, d(W y)/d lam_k = W dy/d lam_k - Phi(W C' W^T) W y
+        with C' = dC/d lam_k = 2 lam_k (imu_level D + walk M) and Phi(X) X's lower triangle with half its diagonal
+        (the derivative of a Cholesky factor). Holding the weights fixed instead (iterated reweighting) makes lam_k
+        the minimiser of a weighted sum whose weights fall as lam_k grows, which pulls the scale towards large |lam|
+        (the attenuation of a regression whose regressor is noisy) wherever the IMU's part of C is not small."""
         for k, blk in enumerate(self.blocks):
             n, W = len(blk.dtau), self._whitener(s, sigma_v, k)
             r = slice(blk.row, blk.row + 3 * n)
@@ -322,11 +339,21 @@ class MetricFit:
             else:
                 y[r] = (W @ y[r].reshape(n, 3)).reshape(-1)
                 A[r] = (W @ A[r].reshape(n, -1)).reshape(3 * n, -1)
+            if not eiv:
+                continue
+            lam, col = s.lam[k], self.layout.lam(k)
+            if W.ndim == 1:
+                A[r, col] -= np.repeat(lam * self.imu_level * blk.imu_var * W**2, 3) * y[r]
+            else:
+                X = 2.0 * lam * (W @ (self.imu_level * np.diag(blk.imu_var) + self.walk * blk.walk_modes) @ W.T)
+                Phi = np.tril(X, -1) + 0.5 * np.diag(np.diag(X))
+                A[r, col] -= (Phi @ y[r].reshape(n, 3)).reshape(-1)
 
     def linearise(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]):
-        """``_model`` whitened: y [m], A [m, p], the row ranges and g's tangent basis [3,2]."""
+        """``_model`` whitened: y [m], A [m, p], the row ranges and g's tangent basis [3,2] (with estimate_levels, of
+        the errors-in-variables objective)."""
         y, A, rows, B = self._model(s, priors)
-        self._whiten(s, sigma_v, y, A)
+        self._whiten(s, sigma_v, y, A, self.estimate_levels)
         return y, A, rows, B
 
     def _decomposed(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]) -> _Linear:
@@ -378,6 +405,10 @@ class MetricFit:
         if estimate and self.K != 1:
             raise ValueError("MetricFit: the visual noise can be estimated only in a single-clip fit")
         s, converged = self._gauss_newton(state.copy(), sigma_v, priors, iterations, tol, estimate)
+        if self.estimate_levels:
+            # from the fixed-weights solution: from a start far off (a clip started at its neighbour's scale) the
+            # errors-in-variables objective's descent can lead off to |lam| -> inf (``_damped``)
+            s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False, eiv=True)
         lin = self._decomposed(s, sigma_v, priors)
         result = self._result(s, lin, sigma_v, converged)
         # The velocity ties are the IMU's word over a second; where the real IMU is worse than its model there
@@ -388,7 +419,7 @@ class MetricFit:
             if vc <= 1.2 or self.link_scale >= 10.0:
                 break
             self.link_scale = min(self.link_scale * math.sqrt(vc), 10.0)
-            s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False)
+            s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False, eiv=self.estimate_levels)
             lin = self._decomposed(s, sigma_v, priors)
             result = self._result(s, lin, sigma_v, converged)
         # A 3DFM's errors are correlated in time (a scale drifting inside the clip, a depth-dependent bias): where the
@@ -398,40 +429,74 @@ class MetricFit:
             walk = self._walk_reml(s, sigma_v, priors, lin)
             if walk > 0.0:
                 self.walk = walk
-                s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False)
+                s, converged = self._gauss_newton(s, sigma_v, priors, iterations, tol, False, eiv=self.estimate_levels)
+                lin = self._decomposed(s, sigma_v, priors)
+                result = self._result(s, lin, sigma_v, converged)
+        if self.estimate_levels:
+            score, info = self._reml_terms(s, sigma_v, lin, LEVELS)
+            # The residuals can show the IMU worse than its model, never better: the part of its error that looks like
+            # a change of scale (a scale factor, a tilt growing with the motion) is taken up by the scales and leaves
+            # no trace in them, and the model's level covers it (at the level the residuals give, the real V2_03 IMU's
+            # claims at 1 mm of pose noise were beyond 3 sigma six times as often). The scales are fitted at the
+            # estimated levels; their covariance, and what ``marginalise`` keeps of them, at no less than the model's.
+            if self.imu_level < 1.0:
+                self.imu_level = 1.0
                 result = self._result(s, self._decomposed(s, sigma_v, priors), sigma_v, converged)
+            result.level_score, result.level_info = score, info
         return result
+
+    def _kernels(self, s: FitState, sigma_v: np.ndarray, k: int, names: Sequence[str]) -> np.ndarray:
+        """[c,n,n]: clip k's derivatives (per axis, in its whitened rows) of the visual rows' covariance by each
+        variance component in ``names``: "walk" lam^2 W M W^T; "imu_level" lam^2 imu_level W D W^T and "visual_level"
+        visual_level sigma_v^2 W W^T (the two levels by their logarithms)."""
+        blk, W = self.blocks[k], self._whitener(s, sigma_v, k)
+        lam2, full = s.lam[k] ** 2, W.ndim == 2
+        kernel = {"walk": lambda: lam2 * (W @ blk.walk_modes @ W.T if full else np.outer(W, W) * blk.walk_modes),
+                  "imu_level": lambda: lam2 * self.imu_level * ((W * blk.imu_var) @ W.T if full
+                                                                else np.diag(W**2 * blk.imu_var)),
+                  "visual_level": lambda: self.visual_level * sigma_v[k] ** 2 * (W @ W.T if full else np.diag(W**2))}
+        return np.stack([kernel[name]() for name in names])
+
+    def _reml_terms(self, s: FitState, sigma_v: np.ndarray, lin: _Linear,
+                    names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """The score [c] and Fisher information [c,c] of the restricted likelihood of the residuals at ``s`` (``lin``:
+        ``_decomposed`` there) in the variance components ``names`` (``_kernels``), the other rows' models held. In the
+        coordinates whitened at the current values, with G_i the covariance's derivative by component i
+        (block-diagonal by clip and axis) and P the residual projector, the score is (r^T G_i r - tr(P G_i)) / 2 and
+        the information tr(P G_i P G_j) / 2."""
+        Q = lin.U[:, lin.sv > 1e-10 * lin.sv[0]]  # P = I - Q Q^T
+        r = lin.y - Q @ (Q.T @ lin.y)
+        c = len(names)
+        rGr, trG = np.zeros(c), np.zeros(c)
+        trGG, trQGGQ = np.zeros((c, c)), np.zeros((c, c))
+        QGQ = np.zeros((c, Q.shape[1], Q.shape[1]))
+        for k, blk in enumerate(self.blocks):
+            n = len(blk.dtau)
+            G = self._kernels(s, sigma_v, k, names)
+            rows = slice(blk.row, blk.row + 3 * n)
+            rk, Qk = r[rows].reshape(n, 3), Q[rows].reshape(n, -1)  # Qk rows: frame, columns: (axis, q)
+            GQ = G @ Qk
+            rGr += np.einsum("ia,cij,ja->c", rk, G, rk)
+            trG += 3.0 * np.trace(G, axis1=1, axis2=2)
+            trGG += 3.0 * np.einsum("aij,bij->ab", G, G)
+            trQGGQ += np.einsum("aij,bij->ab", GQ, GQ)
+            QGQ += np.einsum("ij,cik->cjk", Qk.reshape(3 * n, -1), GQ.reshape(c, 3 * n, -1))
+        score = 0.5 * (rGr - (trG - np.trace(QGQ, axis1=1, axis2=2)))
+        info = 0.5 * (trGG - 2.0 * trQGGQ + np.einsum("ajk,bkj->ab", QGQ, QGQ))
+        return score, info
 
     def _walk_reml(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], start: _Linear, *,
                    iterations: int = 6) -> float:
         """The random walk's variance rate (m^2/s of metric position, shared by the clips) that maximises the
-        restricted likelihood of the residuals at ``s``, each clip's white noise and the other rows' models held:
-        Fisher scoring in the coordinates whitened at the current value, where the covariance's derivative is
-        G = block-diag(lam_k^2 W_k M_k W_k^T) per axis and, with P the residual projector, the score is
-        (r^T G r - tr(P G)) / 2 and the information tr(P G P G) / 2. 0 where the residuals show none. ``start``:
-        ``_decomposed`` at ``s`` with the current walk (the solution's own, where the scoring starts)."""
+        restricted likelihood of the residuals at ``s`` (``_reml_terms``), each clip's white noise and the other rows'
+        models held: Fisher scoring, 0 where the residuals show none. ``start``: ``_decomposed`` at ``s`` with the
+        current walk (the solution's own, where the scoring starts)."""
         walk = self.walk
         for it in range(iterations):
             self.walk = walk
             lin = start if it == 0 else self._decomposed(s, sigma_v, priors)
-            Q = lin.U[:, lin.sv > 1e-10 * lin.sv[0]]  # P = I - Q Q^T
-            r = lin.y - Q @ (Q.T @ lin.y)
-            QGQ = np.zeros((Q.shape[1], Q.shape[1]))
-            rGr = trG = trGG = trQGG = 0.0
-            for k, blk in enumerate(self.blocks):
-                n, W = len(blk.dtau), self._whitener(s, sigma_v, k)
-                G = s.lam[k] ** 2 * (W @ blk.walk_modes @ W.T if W.ndim == 2 else np.outer(W, W) * blk.walk_modes)
-                rows = slice(blk.row, blk.row + 3 * n)
-                rk, Qk = r[rows].reshape(n, 3), Q[rows].reshape(n, -1)  # Qk rows: frame, columns: (axis, q)
-                rGr += float(np.sum(rk * (G @ rk)))
-                trG += 3.0 * float(np.trace(G))
-                trGG += 3.0 * float(np.sum(G * G))
-                GQ = G @ Qk
-                QGQ += Qk.reshape(3 * n, -1).T @ GQ.reshape(3 * n, -1)
-                trQGG += float(np.vdot(GQ, GQ))
-            score = 0.5 * (rGr - (trG - np.trace(QGQ)))
-            info = 0.5 * (trGG - 2.0 * trQGG + float(np.sum(QGQ * QGQ.T)))
-            new = max(walk + score / info, 0.0) if info > 0 else walk
+            score, info = self._reml_terms(s, sigma_v, lin, ("walk",))
+            new = max(walk + float(score[0] / info[0, 0]), 0.0) if info[0, 0] > 0 else walk
             if abs(new - walk) <= 1e-3 * max(new, 1e-12):
                 walk = new
                 break
@@ -440,18 +505,37 @@ class MetricFit:
         return walk
 
     def _gauss_newton(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], iterations: int,
-                      tol: float, estimate: bool) -> tuple[FitState, bool]:
+                      tol: float, estimate: bool, *, eiv: bool = False) -> tuple[FitState, bool]:
+        """Gauss-Newton from ``s`` (``solve``), of the errors-in-variables objective where ``eiv`` (``_whiten``, its
+        steps ``_damped``); ``estimate``: the single clip's visual noise first (``_visual_noise``)."""
         for it in range(iterations):
             y, A, _, B = self._model(s, priors)
             if estimate and it == 0:  # at the linear starting point: re-estimating it later changes nothing
                 sigma_v[0] = self._visual_noise(s, y, A)
-            self._whiten(s, sigma_v, y, A)
+            self._whiten(s, sigma_v, y, A, eiv)
             dx = lstsq(A, y)
+            if eiv:
+                dx = self._damped(s, dx, B, float(y @ y), sigma_v, priors)
             s = self._step(s, dx, B)
             if it >= 1 and np.all(np.abs(dx[self.layout.lams]) <= tol * np.abs(s.lam)) \
                     and np.abs(dx[self.layout.g]).max() <= 0.1 * tol:
                 return s, True
         return s, False
+
+    def _damped(self, s: FitState, dx: np.ndarray, B: np.ndarray, cost: float, sigma_v: np.ndarray,
+                priors: tuple[GaussianPrior, ...]) -> np.ndarray:
+        """The Gauss-Newton step dx from ``s`` halved (at most 5 times) while it raises the whitened cost above
+        ``cost``: the errors-in-variables objective flattens out as |lam_k| grows (the clip's weights fall with
+        lam_k^2), and a full step can overshoot onto that slope, where the fit would run off to infinity. A step that
+        moves no scale by more than a tenth is taken as it is (near the solution, where every step is)."""
+        if np.all(np.abs(dx[self.layout.lams]) <= 0.1 * np.abs(s.lam)):
+            return dx
+        for _ in range(5):
+            y = self.linearise(self._step(s, dx, B), sigma_v, priors)[0]
+            if float(y @ y) <= cost:
+                break
+            dx = 0.5 * dx
+        return dx
 
     def _visual_noise(self, s: FitState, y: np.ndarray, A: np.ndarray, *, iterations: int = 8) -> float:
         """The single clip's visual noise sigma_v (model units, per axis) that maximises the restricted likelihood of
@@ -576,6 +660,7 @@ class _Links:
 
 
 _EYE3 = np.eye(3)
+LEVELS = ("imu_level", "visual_level")  # the noise levels' variance components (``MetricFit.solve``)
 ATTITUDE_ANCHOR = 1e-6  # rad: the window's first frame is B0 itself (its attitude error is zero)
 _HAT_E = so3.hat(np.eye(3))  # [3,3,3]: hat of each axis
 

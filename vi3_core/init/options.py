@@ -47,6 +47,9 @@ class InitOptions:
         visual_drift: the online window estimates a random walk of the backbone's positions (temporally correlated
             errors: a scale drifting inside a clip, a depth-dependent bias) beside each clip's white noise, from the
             residuals of all its clips, and widens the scales' sigmas by it.
+        noise_levels: the online window estimates the IMU's noise level (a factor on the noise model's position
+            covariance) and the clips' visual noise level from the residuals of all its clips, and fits the scales
+            by errors in variables (``MetricFit`` with estimate_levels).
         max_scale_sigma: a scale whose relative 1-sigma exceeds this is not claimed (status unobservable). At 4 %
             a claimed scale 10 % off is a 2.5-sigma event (about 1 % of the claims at the limit, fewer below it).
         max_rotation_error: a clip whose backbone relative rotations disagree with the bias-corrected gyro by more
@@ -80,6 +83,7 @@ class InitOptions:
     time_offset_sigma: float = ImuNoiseModel.time_offset_sigma
     accel_matrix: str = ""
     visual_drift: bool = True
+    noise_levels: bool = False
     max_scale_sigma: float = 0.04
     max_rotation_error: float = 2.0
     min_accel_rms: float = 0.15

@@ -42,7 +42,8 @@ class OnlineDecision:
     ``own``: the clip's own GT-free initialisation (what the paper's per-clip pipeline with the error model would
     output; None before the clip was seen), whether the clip ``joined`` the window, the scale ``link`` to the clip
     before it that the window fit used (None: none) and ``link_note``, what became of a link otherwise; ``scale_p``:
-    the p-value of the clip's own scale against the window's (``scale_agreement``; NaN where it was not tested)."""
+    the p-value of the clip's own scale against the window's (``scale_agreement``; NaN where it was not tested);
+    ``levels``: the noise levels (IMU, visual) learnt so far (``Window.levels``; empty where not estimated)."""
 
     window: int = 0
     span_s: float = 0.0
@@ -54,6 +55,7 @@ class OnlineDecision:
     link: MeasuredLink | None = None
     link_note: str = ""
     scale_p: float = float("nan")
+    levels: tuple[float, ...] = ()
 
     @property
     def earned(self) -> str:
@@ -69,6 +71,8 @@ class OnlineDecision:
             parts.append(f"link: {self.link_note}")
         if math.isfinite(self.scale_p):
             parts.append(f"own scale agrees: p = {self.scale_p:.2g}")
+        if self.levels:
+            parts.append("noise levels: IMU {:.2g}, visual {:.2g}".format(*self.levels))
         parts += [f"{name} rejected: {why}" for name, why in sorted(self.rejected.items())]
         if self.reset:
             parts.append(f"reset: {self.reset}")
@@ -127,7 +131,8 @@ class OnlineEstimator:
                              "on independent clips only")
         self.window = Window(noise=self.init_options.noise_model, gravity_norm=self.init_options.gravity_norm,
                              window_s=self.options.online_window, max_clips=self.options.online_max_clips,
-                             visual_drift=self.init_options.visual_drift)
+                             visual_drift=self.init_options.visual_drift,
+                             noise_levels=self.init_options.noise_levels)
         self.chain = OdomChain(options=self.options, init_options=self.init_options)
         self.last = OnlineDecision()
         self._imu: ImuSamples | None = None
@@ -316,7 +321,8 @@ class OnlineEstimator:
             measured, link_note = None, "not used: the window restarted"
         span = members_span(sol.members)
         decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset, joined=True,
-                                  link=measured, link_note=link_note, scale_p=p_scale)
+                                  link=measured, link_note=link_note, scale_p=p_scale,
+                                  levels=tuple(self.window.levels) if self.window.noise_levels else ())
         g_k, v_k = sol.frame_state(k)
         s, rel = float(res.scale[k]), float(res.scale_rel_sigma[k])
         g_sigma, v_sigma = res.state_sigma(k)

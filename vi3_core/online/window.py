@@ -32,6 +32,8 @@ from vi3_core.preintegration import preintegrate
 from vi3_core.types import ImuSamples
 
 BA_FLOOR = 0.01  # m/s^2: no window's accelerometer-bias estimate is carried across a restart as better than this
+LEVEL_PRIOR = 1.0  # the noise levels' prior: log-normal about the noise model's (1), this 1-sigma in the logarithm
+LEVEL_STEP = 1.0  # the most a level's logarithm moves per clip
 
 
 @dataclass
@@ -76,14 +78,19 @@ class Solution:
 
 
 class Window:
-    """The members of the current window, the marginal prior of the clips before them, and the biases' last
-    estimates (for a restart). ``solve`` fits a candidate clip with them without changing anything; ``commit`` makes
-    that fit the window and marginalises members older than ``window_s`` (or beyond ``max_clips``)."""
+    """The members of the current window, the marginal prior of the clips before them, the biases' last estimates
+    (for a restart) and, with ``noise_levels``, the sensors' noise levels learnt over the flight (``_learn_levels``).
+    ``solve`` fits a candidate clip with them without changing anything; ``commit`` makes that fit the window and
+    marginalises members older than ``window_s`` (or beyond ``max_clips``)."""
 
     def __init__(self, *, noise: ImuNoiseModel, gravity_norm: float, window_s: float, max_clips: int,
-                 visual_drift: bool = True) -> None:
+                 visual_drift: bool = True, noise_levels: bool = False) -> None:
         self.noise, self.G, self.window_s, self.max_clips = noise, gravity_norm, window_s, max_clips
-        self.visual_drift = visual_drift
+        self.visual_drift, self.noise_levels = visual_drift, noise_levels
+        # the noise levels (imu_level, visual_level: ``MetricFit``) and the information [2,2] in their logarithms
+        # gathered so far: properties of the sensors, carried across restarts
+        self.levels = np.ones(2)
+        self.level_info = np.eye(2) / LEVEL_PRIOR**2
         self.members: list[Member] = []
         self.prior: GaussianPrior | None = None
         self.ba: tuple[np.ndarray, np.ndarray] | None = None  # last (ba [3], covariance [3,3]) estimate
@@ -119,7 +126,8 @@ class Window:
         links = [m.link.link if m.link is not None and m.link.clip_start == float(prev.stamps[0]) else None
                  for prev, m in zip(members, members[1:])]
         fit = MetricFit(clips, pre, T_BC, noise=self.noise, gravity_norm=self.G, bg_sigma=bg_sigma, scale_links=links,
-                        estimate_walk=self.visual_drift)
+                        estimate_walk=self.visual_drift, estimate_levels=self.noise_levels)
+        fit.imu_level, fit.visual_level = (float(x) for x in self.levels)
         R0 = [pre.R[b.first] for b in fit.blocks]
         lam = np.array([m.lam for m in members])
         known = np.isfinite(lam) & (lam > 0)
@@ -140,6 +148,8 @@ class Window:
         than ``window_s`` before the newest one (and as many as the next fit needs to stay within ``max_clips``)
         into the prior."""
         s = sol.result.state
+        if self.noise_levels:
+            self._learn_levels(sol)
         for k, m in enumerate(sol.members):
             g, v = sol.frame_state(k)
             m.lam, m.v, m.g = float(s.lam[k]), v, g
@@ -151,6 +161,21 @@ class Window:
         self.members = sol.members[drop:]
         if drop > 0:
             self.prior = marginalise(sol.fit, sol.result, drop, sol.priors)
+
+    def _learn_levels(self, sol: Solution) -> None:
+        """One step of a recursive Fisher scoring of the noise levels over the flight: the new clip's share (1 / K of a
+        window of K, each clip being in about K windows) of the fit's restricted-likelihood score and information
+        in their logarithms (``FitResult.level_score``) joins what earlier clips gave, and the levels move by the
+        score over all the information, which starts at the prior's. A single window's estimate swings by factors of
+        ten between consecutive clips (two variances from a few hundred rows that both explain the same residuals);
+        the flight's converges, as a sensor's constant noise should."""
+        res = sol.result
+        share = 1.0 / len(sol.members)
+        info = self.level_info + share * res.level_info
+        step = np.linalg.solve(info, share * res.level_score)
+        if np.all(np.isfinite(step)) and np.all(np.linalg.eigvalsh(info) > 0):
+            self.level_info = info
+            self.levels = self.levels * np.exp(np.clip(step, -LEVEL_STEP, LEVEL_STEP))
 
 
 
