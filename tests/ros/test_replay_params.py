@@ -90,7 +90,7 @@ def test_realsense_config_loads_and_learns_the_noise_levels():
     levels learnt, no accelerometer matrix until one is given)."""
     settings = resolve(load_yaml(REPO / "config" / "realsense.yaml"))
     assert settings.init.noise_levels and settings.init.accel_A is None
-    assert settings.inputs.imu_topic == "/camera/camera/imu" and settings.inputs.use_tf_static
+    assert settings.inputs.imu_topic == "/camera/camera/imu" and not settings.inputs.use_tf_static
     assert resolve().init.noise_levels is False  # the default keeps the model's levels
 
 
