@@ -216,6 +216,31 @@ def test_marginalising_old_clips_keeps_their_evidence():
         assert np.median(reduced.scale_rel_sigma) < np.median(alone.scale_rel_sigma)  # the prior carries evidence
 
 
+def test_marginalising_a_fit_whose_covariance_floors_the_imu_level_keeps_its_estimates():
+    """With the noise levels estimated and an IMU level below the model's, the window's covariance is taken at the
+    model's level (``MetricFit.solve``) but its state was fitted at the lower one: the marginal prior carries the
+    gradient where the state was fitted, so a window of the remaining clips at the same level finds the same scales
+    (within a tenth of a sigma; with the gradient at the floor's level they moved by up to 0.3 sigma)."""
+    imu, clips, scales, bg, g, T_BC = _window_case(3, 7, PoseNoise(pos_m=0.0005, rot_deg=0.02))
+    sigma_v = 0.0005 / scales
+
+    def solve(clips, sigma_v, g, priors=()):
+        clips = [FitClip(c.stamps, c.T_wc, s) for c, s in zip(clips, sigma_v)]
+        pre = preintegrate(imu.window(clips[0].stamps[0], clips[-1].stamps[-1]), fit_stamps(clips), bg,
+                           jacobians=True)
+        fit = MetricFit(clips, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81, estimate_levels=True)
+        fit.imu_level = 0.05
+        return fit, fit.solve(fit.initial_state(g), priors=priors)
+
+    fit, full = solve(clips, sigma_v, g[0])
+    assert (fit.fitted_imu_level, fit.imu_level) == (0.05, 1.0)
+    for drop in (1, 3):
+        R_f = fit.pre.R[fit.blocks[drop].first]
+        _, reduced = solve(clips[drop:], sigma_v[drop:], R_f.T @ full.state.g, (marginalise(fit, full, drop),))
+        moved = (reduced.scale / full.scale[drop:] - 1) / full.scale_rel_sigma[drop:]
+        assert np.all(np.abs(moved) < 0.1), moved
+
+
 def test_widening_a_prior_adds_the_bias_walk_and_leaves_free_directions_free():
     """``GaussianPrior.widened``: where the information is invertible, the covariance plus the biases' walk, inverted
     (to 1e-8), the mean kept; with g's radial direction free (as ``marginalise`` makes them) that direction stays

@@ -30,6 +30,11 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     names += [f"prior {i}" for i in range(len(priors))]
     sel = np.concatenate([np.array(rows[name], dtype=int) for name in names])
     H, b = A[sel].T @ A[sel], A[sel].T @ y[sel]  # cost 1/2 |y + A dx|^2 of the parameter change dx
+    if fit.fitted_imu_level is not None:
+        # the information at the covariance's floor of the IMU level, the gradient where the state was fitted
+        # (``MetricFit.solve``): else the prior would pull the next window towards the floor's solution
+        y_f, A_f = fit.linearise(result.state, result.sigma_v, priors, fitted=True)[:2]
+        b = A_f[sel].T @ y_f[sel]
     kept = L.prior_columns(drop)
     gone = np.arange(L.clip(0).start, L.clip(drop).start)
     # An undetermined unknown of a dropped clip (a scale its data do not fix) carries nothing over: the pseudo-

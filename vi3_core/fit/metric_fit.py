@@ -209,6 +209,7 @@ class MetricFit:
         self.link_scale = 1.0  # the ties' sigma relative to the noise model (variance component, see ``solve``)
         self.walk = 0.0  # m^2/s: the variance rate of a random walk of the backbone's positions (``solve``)
         self.imu_level = self.visual_level = 1.0  # the noise levels (see above)
+        self.fitted_imu_level: float | None = None  # the IMU level the state was fitted at, where ``solve`` floored it
         self.estimate_walk, self.estimate_levels = estimate_walk, estimate_levels
         f = np.array([b.first for b in self.blocks])
         f0, f1 = f[:-1], f[1:]
@@ -309,28 +310,30 @@ class MetricFit:
                 r0 = r1
         return y, A, rows, B
 
-    def _whitener(self, s: FitState, sigma_v: np.ndarray, k: int) -> np.ndarray:
+    def _whitener(self, s: FitState, sigma_v: np.ndarray, k: int, imu_level: float | None = None) -> np.ndarray:
         """[n] weights, or [n,n] matrix W, that whiten clip k's visual rows (on the modes of its IMU position
         covariance, per axis): their covariance is C = visual_level sigma_v,k^2 I + lam_k^2 (imu_level D + walk M),
         D the modes' IMU position variances, M the random walk's kernel on them; W W^T = C^-1 (W = L^-1, L its
-        Cholesky factor)."""
+        Cholesky factor); imu_level: in place of ``self.imu_level``."""
         blk = self.blocks[k]
-        var = self.visual_level * sigma_v[k] ** 2 + s.lam[k] ** 2 * self.imu_level * blk.imu_var
+        level = self.imu_level if imu_level is None else imu_level
+        var = self.visual_level * sigma_v[k] ** 2 + s.lam[k] ** 2 * level * blk.imu_var
         if self.walk == 0.0:
             return 1.0 / np.sqrt(var)
         C = np.diag(var) + (s.lam[k] ** 2 * self.walk) * blk.walk_modes
         return solve_triangular(np.linalg.cholesky(C), np.eye(len(var)), lower=True)
 
-    def _whiten(self, s: FitState, sigma_v: np.ndarray, y: np.ndarray, A: np.ndarray, eiv: bool) -> None:
+    def _whiten(self, s: FitState, sigma_v: np.ndarray, y: np.ndarray, A: np.ndarray, eiv: bool,
+                imu_level: float | None = None) -> None:
         """Whiten ``_model``'s visual rows of y [m] and A [m, p] in place (``_whitener``); the others are already.
         With ``eiv`` the objective is the errors-in-variables one: the whitening's own dependence on
         lam_k (its IMU terms grow with lam_k^2) joins lam_k's column, d(W y)/d lam_k = W dy/d lam_k - Phi(W C' W^T) W y
         with C' = dC/d lam_k = 2 lam_k (imu_level D + walk M) and Phi(X) X's lower triangle with half its diagonal
-        (the derivative of a Cholesky factor). Holding the weights fixed instead (iterated reweighting) makes lam_k
-        the minimiser of a weighted sum whose weights fall as lam_k grows, which pulls the scale towards large |lam|
-        (the attenuation of a regression whose regressor is noisy) wherever the IMU's part of C is not small."""
+        (the derivative of a Cholesky factor). Holding the weights fixed instead (iterated reweighting) ignores that
+        a larger lam_k also widens the rows' noise, and attenuates lam_k (the scale comes out high: a regression on a
+        noisy regressor) wherever the IMU's part of C is not small."""
         for k, blk in enumerate(self.blocks):
-            n, W = len(blk.dtau), self._whitener(s, sigma_v, k)
+            n, W = len(blk.dtau), self._whitener(s, sigma_v, k, imu_level)
             r = slice(blk.row, blk.row + 3 * n)
             if W.ndim == 1:
                 w = np.repeat(W, 3)
@@ -342,18 +345,20 @@ class MetricFit:
             if not eiv:
                 continue
             lam, col = s.lam[k], self.layout.lam(k)
+            level = self.imu_level if imu_level is None else imu_level
             if W.ndim == 1:
-                A[r, col] -= np.repeat(lam * self.imu_level * blk.imu_var * W**2, 3) * y[r]
+                A[r, col] -= np.repeat(lam * level * blk.imu_var * W**2, 3) * y[r]
             else:
-                X = 2.0 * lam * (W @ (self.imu_level * np.diag(blk.imu_var) + self.walk * blk.walk_modes) @ W.T)
+                X = 2.0 * lam * (W @ (level * np.diag(blk.imu_var) + self.walk * blk.walk_modes) @ W.T)
                 Phi = np.tril(X, -1) + 0.5 * np.diag(np.diag(X))
                 A[r, col] -= (Phi @ y[r].reshape(n, 3)).reshape(-1)
 
-    def linearise(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]):
+    def linearise(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...], *, fitted: bool = False):
         """``_model`` whitened: y [m], A [m, p], the row ranges and g's tangent basis [3,2] (with estimate_levels, of
-        the errors-in-variables objective)."""
+        the errors-in-variables objective); ``fitted``: at the IMU level the state was fitted at, where ``solve``
+        floored the covariance's (there the cost's gradient is zero; at the floor it is not)."""
         y, A, rows, B = self._model(s, priors)
-        self._whiten(s, sigma_v, y, A, self.estimate_levels)
+        self._whiten(s, sigma_v, y, A, self.estimate_levels, self.fitted_imu_level if fitted else None)
         return y, A, rows, B
 
     def _decomposed(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]) -> _Linear:
@@ -440,7 +445,7 @@ class MetricFit:
             # claims at 1 mm of pose noise were beyond 3 sigma six times as often). The scales are fitted at the
             # estimated levels; their covariance, and what ``marginalise`` keeps of them, at no less than the model's.
             if self.imu_level < 1.0:
-                self.imu_level = 1.0
+                self.fitted_imu_level, self.imu_level = self.imu_level, 1.0
                 result = self._result(s, self._decomposed(s, sigma_v, priors), sigma_v, converged)
             result.level_score, result.level_info = score, info
         return result
@@ -460,7 +465,8 @@ class MetricFit:
     def _reml_terms(self, s: FitState, sigma_v: np.ndarray, lin: _Linear,
                     names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """The score [c] and Fisher information [c,c] of the restricted likelihood of the residuals at ``s`` (``lin``:
-        ``_decomposed`` there) in the variance components ``names`` (``_kernels``), the other rows' models held. In the
+        ``_decomposed`` there: its projector is onto the whitened Jacobian, with estimate_levels the errors-in-variables
+        one) in the variance components ``names`` (``_kernels``), the other rows' models held. In the
         coordinates whitened at the current values, with G_i the covariance's derivative by component i
         (block-diagonal by clip and axis) and P the residual projector, the score is (r^T G_i r - tr(P G_i)) / 2 and
         the information tr(P G_i P G_j) / 2."""
@@ -524,10 +530,10 @@ class MetricFit:
 
     def _damped(self, s: FitState, dx: np.ndarray, B: np.ndarray, cost: float, sigma_v: np.ndarray,
                 priors: tuple[GaussianPrior, ...]) -> np.ndarray:
-        """The Gauss-Newton step dx from ``s`` halved (at most 5 times) while it raises the whitened cost above
-        ``cost``: the errors-in-variables objective flattens out as |lam_k| grows (the clip's weights fall with
-        lam_k^2), and a full step can overshoot onto that slope, where the fit would run off to infinity. A step that
-        moves no scale by more than a tenth is taken as it is (near the solution, where every step is)."""
+        """The Gauss-Newton step dx from ``s`` halved (at most 5 times, the last untested) while it raises the whitened
+        cost above ``cost``: the errors-in-variables objective flattens out as |lam_k| grows (the clip's weights fall
+        with lam_k^2), and a full step can overshoot onto that slope, where the fit would run off to infinity. A step
+        that moves no scale by more than a tenth is taken as it is (near the solution, where every step is)."""
         if np.all(np.abs(dx[self.layout.lams]) <= 0.1 * np.abs(s.lam)):
             return dx
         for _ in range(5):

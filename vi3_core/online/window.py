@@ -166,14 +166,15 @@ class Window:
         """One step of a recursive Fisher scoring of the noise levels over the flight: the new clip's share (1 / K of a
         window of K, each clip being in about K windows) of the fit's restricted-likelihood score and information
         in their logarithms (``FitResult.level_score``) joins what earlier clips gave, and the levels move by the
-        score over all the information, which starts at the prior's. A single window's estimate swings by factors of
+        score over all the information, which starts at the prior's (a heuristic share: while the window fills, a
+        clip counts more than once). A single window's estimate swings by factors of
         ten between consecutive clips (two variances from a few hundred rows that both explain the same residuals);
         the flight's converges, as a sensor's constant noise should."""
         res = sol.result
         share = 1.0 / len(sol.members)
         info = self.level_info + share * res.level_info
-        step = np.linalg.solve(info, share * res.level_score)
-        if np.all(np.isfinite(step)) and np.all(np.linalg.eigvalsh(info) > 0):
+        step = np.linalg.solve(info, share * res.level_score)  # info: the prior's plus Fisher informations
+        if np.all(np.isfinite(step)):
             self.level_info = info
             self.levels = self.levels * np.exp(np.clip(step, -LEVEL_STEP, LEVEL_STEP))
 
