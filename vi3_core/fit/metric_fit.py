@@ -332,8 +332,9 @@ class MetricFit:
         (the derivative of a Cholesky factor). Holding the weights fixed instead (iterated reweighting) ignores that
         a larger lam_k also widens the rows' noise, and attenuates lam_k (the scale comes out high: a regression on a
         noisy regressor) wherever the IMU's part of C is not small."""
+        level = self.imu_level if imu_level is None else imu_level
         for k, blk in enumerate(self.blocks):
-            n, W = len(blk.dtau), self._whitener(s, sigma_v, k, imu_level)
+            n, W = len(blk.dtau), self._whitener(s, sigma_v, k, level)
             r = slice(blk.row, blk.row + 3 * n)
             if W.ndim == 1:
                 w = np.repeat(W, 3)
@@ -345,7 +346,6 @@ class MetricFit:
             if not eiv:
                 continue
             lam, col = s.lam[k], self.layout.lam(k)
-            level = self.imu_level if imu_level is None else imu_level
             if W.ndim == 1:
                 A[r, col] -= np.repeat(lam * level * blk.imu_var * W**2, 3) * y[r]
             else:
