@@ -27,7 +27,7 @@ from vi3_core.errors import DataError, yaml_problem
 from vi3_core.init.options import SCALE_SOLVERS, InitOptions
 from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.online.options import OnlineOptions
-from vi3_core.online.stream import StreamOptions
+from vi3_core.online.stream import MAX_READOUT_S, StreamOptions
 from vi3_ros.clip_buffer import ClipBufferOptions
 from vi3_ros.settings import (
     GROUPS,
@@ -105,6 +105,9 @@ PARAMS: tuple[Param, ...] = (
     Param("camera_info_topic", InputOptions, "sensor_msgs/CameraInfo with the intrinsics; empty: use calib_file"),
     Param("calib_file", InputOptions, "EuRoC cam0/sensor.yaml or Kalibr camchain-imucam.yaml: intrinsics, distortion "
           "and T_BC (used for whatever camera_info_topic / tf_static do not provide)"),
+    Param("rolling_shutter_readout", StreamOptions, "s from the first row's exposure to the last's of a rolling-"
+          "shutter camera (a RealSense's colour stream: about 0.025): each frame is turned back to its stamp's "
+          "camera by the gyro before the backbone sees it; 0: a global shutter", range=(0.0, MAX_READOUT_S)),
     Param("use_tf_static", InputOptions, "take the camera pose in the IMU frame from /tf_static (imu_frame -> "
           "camera_frame) instead of calib_file"),
     # frames

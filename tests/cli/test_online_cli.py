@@ -70,6 +70,21 @@ def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
     assert "chained" not in json.loads(capsys.readouterr().out)
 
 
+def test_vi3_eval_scores_the_scale_links_against_the_ground_truth(cache_dir, capsys):
+    """Three consecutive clips: the second and third join the window through their scale links, and each link's
+    ratio is scored against the ratio of the two clips' own scales on the ground truth (a render's links are good
+    to their sigmas)."""
+    asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
+    common = ["eval", str(asl), "--clips", "sliding", "--max-clips", "3", "--no-progress"]
+    assert vi3_main([*common, "--json"]) == 0
+    chained = json.loads(capsys.readouterr().out)["chained"]
+    links = chained["link_errors"]
+    assert links["scored"] == chained["links"]["accepted"] == 2 and links["per_link_sd"] is None, chained
+    assert links["z_median"] < 3.0 and links["within_2sigma"] >= 0.5 and 0.0 < links["sigma_median"] < 0.02, links
+    assert vi3_main(common) == 0
+    assert "scale links against the ground truth: 2 scored" in capsys.readouterr().out
+
+
 def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
     """Several inputs: each sequence reported, then their clips pooled (JSON "sequences" + "pooled"); plots and TUM
     files are named after the sequences."""
@@ -83,6 +98,7 @@ def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):
     pooled = obj["pooled"]["chained"]
     assert pooled["sequences"] == 2 and pooled["resets"] == 0
     assert pooled["drift_pct_max"] == max(s["chained"]["drift_pct"] for s in obj["sequences"])
+    assert pooled["link_errors"]["scored"] == sum(s["chained"]["link_errors"]["scored"] for s in obj["sequences"])
     assert pooled["independent_claimed_outliers"]["count"] == sum(
         s["chained"]["independent_claimed_outliers"]["count"] for s in obj["sequences"])
     assert all((tmp_path / f"eval_{n}.png").is_file() and (tmp_path / "tum" / n / "odom_vi3.txt").is_file()

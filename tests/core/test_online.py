@@ -16,7 +16,7 @@ from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import gt_camera_poses, make_clip, sample_clips
 from vi3_core.eval.chained import chained_metrics
 from vi3_core.fit.position import fit_positions
-from vi3_core.init import initialise_clip
+from vi3_core.init import InitOptions, initialise_clip
 from vi3_core.init.oracle import oracle_init
 from vi3_core.online import OnlineEstimator, OnlineOptions
 from vi3_core.online.estimator import scale_agreement
@@ -40,18 +40,19 @@ def _geometry(clip, noise: PoseNoise, rng: np.random.Generator) -> Geometry:
     return Geometry(T, np.repeat(clip.K[None], n, 0), np.full((n, 4, 4), 1.0), np.ones((n, 4, 4)))
 
 
-def _run(seq, *, noise: PoseNoise = NOISE, clips=None, options: OnlineOptions | None = None, broken=()):
+def _run(seq, *, noise: PoseNoise = NOISE, clips=None, options: OnlineOptions | None = None, broken=(),
+         init_options: InitOptions | None = None):
     """The estimator over sliding clips: (estimator, online InitResults, the clips' own InitResults, decisions).
     Clips at positions ``broken`` get their poses' x and y axes swapped (a backbone failure)."""
     rng = np.random.default_rng(0)
-    est = OnlineEstimator(options=options)
+    est = OnlineEstimator(options=options, init_options=init_options)
     online, own, decisions = [], [], []
     for k, idx in enumerate(clips or sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")):
         clip = make_clip(seq, idx, with_depth=False, history_s=est.options.online_max_bridge)  # as the node's buffer
         geo = _geometry(clip, noise, rng)
         if k in broken:
             geo = replace(geo, T_wc=geo.T_wc[:, [1, 0, 2, 3]][:, :, [1, 0, 2, 3]])
-        own.append(initialise_clip(clip, geo))
+        own.append(initialise_clip(clip, geo, options=est.init_options))
         init = est.initialise(clip, geo)
         result = AnchorResult(geometry=geo.scaled(init.scale) if init.ok else geo, base=geo, init=init,
                               mode="init" if init.ok else "none", alpha=init.scale, target=init.target)
@@ -216,3 +217,16 @@ def test_a_clip_whose_own_scale_is_negative_still_brings_its_evidence(seq):
             re.match(r"window (\d+) clips", decisions[k - 1]).group(1)), (decisions[k - 1], decisions[k])
     n, err, rel = _claims(online)
     assert np.all(err <= 3 * rel)
+
+
+def test_a_window_of_one_clip_claims_only_what_the_clip_itself_would(seq):
+    """The first clip of a stream (or of a restarted window) is fitted alone, with none of its own initialisation's
+    checks: where those say no (here every clip's motion is below a raised min_accel_rms), its window does not claim
+    it, however small the fit's sigma; the windows of several clips after it claim as before."""
+    strict = InitOptions(min_accel_rms=100.0)
+    est, online, own, decisions = _run(seq, noise=PoseNoise(pos_m=0.0003, rot_deg=0.01), init_options=strict)
+    assert decisions[0].startswith("window 1 clips") and not own[0].ok and "min_accel_rms" in own[0].reason
+    assert not online[0].ok and "a window of one clip claims only" in online[0].reason, online[0].reason
+    assert online[0].fit.scale_rel_sigma < strict.max_scale_sigma  # the window's sigma alone would have claimed it
+    n, err, rel = _claims(online)
+    assert n >= len(online) // 2 and np.all(err <= 3 * rel), (n, len(online))

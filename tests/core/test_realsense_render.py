@@ -13,7 +13,8 @@ from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import REALSENSE_CAM, RS_IMU_DELAY_NS, SequenceSpec, write_sequence
 from vi3_core.render.raycast import Renderer
 from vi3_core.render.scene import make_scene
-from vi3_core.render.sensor import REALSENSE, Exposure, SensorModel, blur, finish, row_times
+from vi3_core.render.sensor import REALSENSE, Exposure, SensorModel, blur, finish
+from vi3_core.rolling_shutter import row_times
 from vi3_core.sim.trajectory import PRESETS, make_trajectory
 
 

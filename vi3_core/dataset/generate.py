@@ -43,7 +43,8 @@ from vi3_core.dataset.sequence import make_clip, sample_clips
 from vi3_core.errors import DataError
 from vi3_core.render.raycast import Renderer
 from vi3_core.render.scene import SCENES, Scene, make_scene
-from vi3_core.render.sensor import REALSENSE, Exposure, SensorModel, blur, finish, row_times
+from vi3_core.render.sensor import REALSENSE, Exposure, SensorModel, blur, finish
+from vi3_core.rolling_shutter import row_times
 from vi3_core.sim import euroc
 from vi3_core.sim.imu import REALSENSE_NOISE, ImuNoise, ImuSimulator, default_vibration, draw_accel_bias
 from vi3_core.sim.trajectory import MOTIONS, make_trajectory

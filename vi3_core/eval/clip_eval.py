@@ -48,6 +48,14 @@ class ClipEval:
     def ok(self) -> bool:
         return self.status == "ok"
 
+    @property
+    def base_lam(self) -> float:
+        """Model units per metre of the clip's prediction against GT: 1 / ``exact_scale`` where the backbone knew it,
+        else the base column's least-squares scale (NaN where there is none)."""
+        if self.exact_scale:
+            return 1.0 / self.exact_scale
+        return self.columns["base"].scale_fit if "base" in self.columns else float("nan")
+
     def trajectories(self) -> dict[str, np.ndarray]:
         """Camera trajectories [n,4,4] in C1 by name: "gt", "base", "imu" (the metric IMU target, when the
         init was ok), "init" (fast init result, when refined), "vi3" (the final metric output, when ok); only "gt"

@@ -23,6 +23,7 @@ from vi3_core.eval import coverage
 from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
 from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
 from vi3_core.eval.clip_eval import ClipEval
+from vi3_core.eval.links import LinkScore
 from vi3_core.init.initializer import GYRO_FAILURE
 from vi3_core.types import InitStatus
 
@@ -246,6 +247,7 @@ def chained_summary(run) -> dict:
         "applicable": run.metrics is not None, "reason": run.reason, **m, "resets": run.resets,
         **(run.coverage.as_dict() if run.coverage is not None else {}),
         "calibration": calibration_summary(run),
+        "link_errors": LinkScore.of([run.links]).as_dict(),
         "scale_err_median": median_after_skip(run.scale_err),
         "independent_scale_err_median": median_after_skip(run.independent_scale_err),
         "independent_claimed_outliers": own.outliers(), "independent_sigma_calibration": own.calibration(),
@@ -291,6 +293,7 @@ def pool_chained(named_runs: Sequence[tuple[str, object]]) -> dict:
         "segments": sum(len(r.metrics.segments) for r in scored),
         "resets": sum(r.resets for _, r in named_runs),
         **coverage.pool(r.coverage for _, r in named_runs if r.coverage is not None),
+        "link_errors": LinkScore.of(r.links for _, r in named_runs).as_dict(),
     })
 
 
@@ -317,6 +320,19 @@ def _coverage_line(chained: dict) -> str:
             + f"; scale links: {links['accepted']} used, {links['rejected']} refused, {links['none']} none")
 
 
+def _links_line(chained: dict) -> str:
+    """The scale links against the ground truth (``LinkScore``), or "" where none was scored."""
+    d = chained.get("link_errors")
+    if not d or not d["scored"]:
+        return ""
+    text = (f"scale links against the ground truth: {d['scored']} scored, median |z| {d['z_median']:.2f}, "
+            f"{100 * d['within_2sigma']:.0f} % within 2 sigma (median sigma {100 * d['sigma_median']:.2f} %)")
+    if d["per_link_sd"] is not None:
+        text += (f"; from chains: {100 * d['per_link_sd']:.2f} % per link, the ground truth's own "
+                 f"{100 * d['reference_sd']:.2f} % per clip")
+    return text
+
+
 def _calibration_line(calibration: dict | None) -> str:
     if calibration is None:
         return "rig: as configured (self_calibration off)"
@@ -335,10 +351,11 @@ def format_chained(chained: dict, summary: dict) -> str:
     claims of the chained clips (``summary``: their ``summarise``) beside those of the clips' own initialisation."""
     title = "Chained odom trajectory (yaw + position of each segment's first pose aligned)"
     scales = _one_row(chained, ("scale_err_median", "independent_scale_err_median", "resets"))
-    claims = "\n".join([_claims_line("chained:", summary["claimed_outliers"], summary["sigma_calibration"]),
-                        _claims_line("own init:", chained["independent_claimed_outliers"],
-                                     chained["independent_sigma_calibration"]), _coverage_line(chained),
-                         _calibration_line(chained.get("calibration"))])
+    lines = [_claims_line("chained:", summary["claimed_outliers"], summary["sigma_calibration"]),
+             _claims_line("own init:", chained["independent_claimed_outliers"],
+                          chained["independent_sigma_calibration"]), _coverage_line(chained),
+             _links_line(chained), _calibration_line(chained.get("calibration"))]
+    claims = "\n".join(line for line in lines if line)
     if not chained["applicable"]:
         return f"{title}: {chained['reason']}\n{scales}\n{claims}"
     traj = _one_row(chained, ("ate_m", "drift_pct", "gravity_err_deg", "distance_m", "frames", "segments"))
@@ -359,7 +376,8 @@ def format_pooled_chained(pooled: dict) -> str:
     lines = [f"Chained odom trajectories, {pooled['sequences']} sequences pooled ({pooled['scored']} scored)",
              _one_row(pooled, keys),
              _claims_line("own init:", pooled["independent_claimed_outliers"],
-                          pooled["independent_sigma_calibration"]), _coverage_line(pooled)]
+                          pooled["independent_sigma_calibration"]), _coverage_line(pooled), _links_line(pooled)]
+    lines = [line for line in lines if line]
     lines += [f"not scored: {s['sequence']}: {s['reason']}" for s in pooled["not_scored"]]
     return "\n".join(lines)
 

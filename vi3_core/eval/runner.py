@@ -28,6 +28,7 @@ from vi3_core.eval.chained import ChainedMetrics, chained_metrics, gt_path_lengt
 from vi3_core.eval.claims import scale_error
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.eval.coverage import Coverage, coverage, motion_start
+from vi3_core.eval.links import ScoredLink, scored_links
 from vi3_core.init import InitOptions
 from vi3_core.init.oracle import gt_init_state
 from vi3_core.online import OnlineDecision, OnlineOptions, StreamEstimator, StreamOptions
@@ -59,7 +60,7 @@ class EvalOptions:
         names; max_clips: keep at most this many clips (evenly spread), None for all.
     anchor_options, init_options, online_options, calibration_options: the stream's settings (None: the defaults);
     all_depth: every frame's depth predicted (``StreamOptions.all_depth``; the depth metrics then cover every frame),
-        else the frames the stream reads.
+        else the frames the stream reads; rolling_shutter_readout: the camera's (``StreamOptions``).
     """
 
     mode: str = "init"
@@ -74,6 +75,7 @@ class EvalOptions:
     online_options: OnlineOptions | None = None
     calibration_options: CalibrationOptions | None = None
     all_depth: bool = False
+    rolling_shutter_readout: float = 0.0
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -86,7 +88,8 @@ class EvalOptions:
         """The stream estimator these options describe (``online``: chained, else every clip on its own)."""
         return StreamEstimator(backbone, options=StreamOptions(online=online, mode=self.mode,
                                                                init_source=self.init_source,
-                                                               all_depth=self.all_depth),
+                                                               all_depth=self.all_depth,
+                                                               rolling_shutter_readout=self.rolling_shutter_readout),
                                online=self.online_options, init=self.init_options, anchor=self.anchor_options,
                                calibration=self.calibration_options)
 
@@ -258,7 +261,8 @@ class OnlineRun:
     each clip's own GT-free initialisation (what the paper's per-clip pipeline would output) and its relative scale
     sigma; metrics: None when the trajectory cannot be scored, ``reason`` then says why; coverage: how soon and how
     often the run claimed in flight, and its scale links (``vi3_core.eval.coverage``); calibration: the rig's estimate
-    after each clip (None without self-calibration) and clip_t0 the first stamp of each clip, s."""
+    after each clip (None without self-calibration) and clip_t0 the first stamp of each clip, s; links: the scale
+    links the window used, against the ground truth's ratios (``vi3_core.eval.links``)."""
 
     stamps: np.ndarray
     T_OB: np.ndarray
@@ -275,6 +279,7 @@ class OnlineRun:
     coverage: Coverage | None = None
     calibration: list[RigEstimate | None] = field(default_factory=list)
     clip_t0: list[float] = field(default_factory=list)
+    links: list[ScoredLink] = field(default_factory=list)
 
 
 def contiguity_gap(seq: Sequence, clips: list[np.ndarray], max_gap_s: float) -> str:
@@ -340,8 +345,7 @@ def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[
     run.scale_err = np.array([scale_error(e, e.mode) for e in evals])
     # Scale (fit) is linear in the scale: the clip's own init's is the base's times its scale (the base's is
     # 1 / exact_scale where the backbone knew that, as claims.scale_error scores it).
-    base = np.array([1.0 / e.exact_scale if e.exact_scale else
-                     e.columns["base"].scale_fit if "base" in e.columns else np.nan for e in evals])
+    base = np.array([e.base_lam for e in evals])
     own = [e.decision.own for e in evals]
     scale = np.array([o.scale for o in own], dtype=np.float64)
     ok = np.array([o.ok for o in own], dtype=bool)
@@ -353,6 +357,7 @@ def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[
     start = motion_start(seq.gt.t, seq.gt.v_WB, float(t0[0])) if evals else float("nan")
     run.coverage = coverage(t0, [e.stamps[-1] for e in evals], [e.ok for e in evals],
                             [_link_state(e.decision) for e in evals], start)
+    run.links = scored_links([e.stamps[0] for e in evals], [_link_of(e.decision) for e in evals], base)
     run.reason = contiguity_gap(seq, clips, stream.online_options.online_max_bridge)
     if not run.reason and len(traj.stamps) < 2:
         run.reason = (f"no trajectory: {len(traj.stamps)} chained poses ({sum(e.ok for e in evals)} of "
@@ -361,6 +366,13 @@ def _finish(seq: Sequence, stream: StreamEstimator, run: OnlineRun, evals: list[
                                                           segment_starts=run.segment_starts,
                                                           path_length=functools.partial(gt_path_length, seq.gt))
     return run
+
+
+def _link_of(decision: OnlineDecision) -> tuple[float, float, float] | None:
+    """(log ratio, sigma, clip_start) of the scale link the window fit used for the clip (None: none)."""
+    if decision.link is None:
+        return None
+    return decision.link.link.log_ratio, decision.link.link.sigma, decision.link.clip_start
 
 
 def _link_state(decision: OnlineDecision) -> str:

@@ -11,8 +11,8 @@ gravity, velocity and biases come from that fit, and the scale is claimed only w
 ``max_scale_sigma``. Clips join the window whatever their own sigma: evidence accumulates, so gentle motion earns its
 scale over time. A gap in the IMU (or a bridge longer than ``online_max_bridge``), an out-of-order clip, or
 ``online_max_rejects`` inconsistent clips in a row restart the window (the accelerometer bias survives as a prior,
-the gyro-bias median and the odom attitude survive as they are); a restart clip is claimed only when its own sigma
-passes. Every claimed clip is then placed in odom (``update``).
+the gyro-bias median and the odom attitude survive as they are); a window of one clip (the first, or a restart) is
+claimed only where the clip's own initialisation is. Every claimed clip is then placed in odom (``update``).
 """
 
 from __future__ import annotations
@@ -332,9 +332,14 @@ class OnlineEstimator:
                        time_offset_sigma=res.time_offset_sigma)
         diag = dict(free.diagnostics)
         st = res.state
-        if not (s > 0.0 and rel <= io.max_scale_sigma):
+        # A window of one clip (the stream's first, or a restart) has nothing the clip's own initialisation lacks
+        # but the accelerometer-bias prior, and none of its checks: a clip flown at constant velocity fitted alone
+        # went off to lam -> 0, v -> 1e6 m/s, where the linearisation gave that absurd scale a 3 % sigma.
+        passes = s > 0.0 and rel <= io.max_scale_sigma
+        if not passes or not (k or free.ok):
             why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > max_scale_sigma "
-                   f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s)")
+                   f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s)" if not passes else
+                   f"a window of one clip claims only what the clip's own initialisation does ({free.reason})")
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, fit=fit,
                                            diagnostics=diag), decision, free)
         target = preintegrate(clip.imu, clip.stamps, st.bg, st.ba).propagate(g_k, v_k, clip.T_BC)

@@ -2,7 +2,8 @@
 
 Per clip: with ``shared_frames``, the last frames of the clip before it in the window in place of its first ones when
 clips in between were dropped (``_compose``); the rig's self-calibration where its sigma allows
-(``RigEstimate.apply``: the camera mount turned, the IMU moved onto the frames' clock by the time offset); the
+(``RigEstimate.apply``: the camera mount turned, the IMU moved onto the frames' clock by the time offset); a rolling
+shutter's frames turned back to their stamps by the gyro (``_derolled``); the
 initialisation's data checks (a clip they reject costs no inference); the backbone and the anchoring mode
 (``vi3_core.anchor.anchor``) with the stream's initialisation; then the clip's place in the odom trajectory, and its
 rotations (as configured) added to the rig's estimate.
@@ -22,13 +23,15 @@ import numpy as np
 from vi3_core.anchor import MODES, AnchorOptions, anchor, check_mode
 from vi3_core.backbones.base import Backbone
 from vi3_core.init import InitOptions, oracle_init, validate
-from vi3_core.online.calibration import CalibrationOptions, RigCalibrator, RigEstimate
+from vi3_core.online.calibration import CalibrationOptions, RigCalibrator, RigEstimate, frame_rates
 from vi3_core.online.chain import ChainedClip, OdomState, Trajectory
 from vi3_core.online.estimator import OnlineDecision, OnlineEstimator
 from vi3_core.online.options import OnlineOptions
+from vi3_core.rolling_shutter import derolled
 from vi3_core.types import AnchorResult, Clip, InitResult, InitStatus
 
 IMU_LEAD_MARGIN_S = 0.005  # s: the most a clip waits for IMU beyond the estimated time offset (``imu_lead``)
+MAX_READOUT_S = 0.1  # s: a rolling shutter's readout beyond this is no camera's (a frame interval at 10 Hz)
 INIT_SOURCES = ("vi3", "gt")
 
 
@@ -39,14 +42,20 @@ class StreamOptions:
     initialisation, or "gt", the oracle from the clip's ground truth (evaluation only: every clip on its own).
     all_depth: every frame's depth is read downstream (the node publishes every frame's depth or points); else only
     the frames the stream itself reads get depth from a backbone that predicts depth frame by frame
-    (``StreamEstimator.depth_frames``)."""
+    (``StreamEstimator.depth_frames``). rolling_shutter_readout: s from the first row's exposure to the last's of a
+    rolling-shutter camera, whose frames are then turned back to their stamps' camera by the gyro before the backbone
+    sees them (``vi3_core.rolling_shutter``); 0: a global shutter."""
 
     online: bool = True
     mode: str = "init"
     init_source: str = "vi3"
     all_depth: bool = False
+    rolling_shutter_readout: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.rolling_shutter_readout <= MAX_READOUT_S:
+            raise ValueError(f"rolling_shutter_readout must be in [0, {MAX_READOUT_S}] s; got "
+                             f"{self.rolling_shutter_readout!r}")
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}; got {self.mode!r}")
         if self.init_source not in INIT_SOURCES:
@@ -59,9 +68,9 @@ class StreamOptions:
 class ClipOutcome:
     """What one clip changed.
 
-    clip: the clip as processed (with the shared frames in place of its first ones where ``_compose`` put them, and
-    the applied parts of the rig's estimate: its mount turned, its IMU moved by the time offset; its stamps as
-    configured);
+    clip: the clip as processed (with the shared frames in place of its first ones where ``_compose`` put them, the
+    applied parts of the rig's estimate: its mount turned, its IMU moved by the time offset; its stamps as
+    configured; a rolling shutter's frames turned back to their stamps);
     init: the clip's initialisation (the window's with ``online``), also when the backbone did not run; result: the
     final ``AnchorResult`` (None when the data checks rejected the clip before the backbone); fast: the init-mode
     result that ``cond``/``ttr`` refine (None in ``init`` mode or when the init is not ok); decision: the online
@@ -158,10 +167,10 @@ class StreamEstimator:
         if A is not None:
             history = None if clip.imu_history is None else clip.imu_history.read_through(A)
             clip = dataclasses.replace(clip, imu=clip.imu.read_through(A), imu_history=history)
-        configured = self._compose(clip)
+        configured, shared = self._compose(clip)
         current = self.calibrator.estimate if self.calibrator is not None else None
         rig = current.for_clip(configured) if current is not None else None
-        clip = rig.apply(configured) if rig is not None else configured
+        clip = self._derolled(rig.apply(configured) if rig is not None else configured, shared)
         short = ("time offset not applied: the clip's IMU ends before its frames' moved times"
                  if rig is not None and current.offset_applied and not rig.offset_applied else "")
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
@@ -207,17 +216,30 @@ class StreamEstimator:
         k = self.online_options.shared_frames if self.window is not None else 0
         return np.unique(np.concatenate([np.arange(min(k, n)), np.arange(max(n - max(k, 1), 0), n)]))
 
-    def _compose(self, clip: Clip) -> Clip:
+    def _compose(self, clip: Clip) -> tuple[Clip, int]:
         """``clip``, or with the window's shared frames in place of its first ones when it does not start with them
         (the clips in between were dropped) and they end at most ``shared_max_gap`` before its own frames: so that
-        its scale is linked to the window's through frames both clips predicted."""
+        its scale is linked to the window's through frames both clips predicted; and how many frames were put in."""
         shared = self.window.shared if self.window is not None else None
         if shared is None or shared.starts(clip) or clip.n <= len(shared):
-            return clip
+            return clip, 0
         gap = float(clip.stamps[len(shared)] - shared.stamps[-1])
         if not 0.0 < gap <= self.online_options.shared_max_gap:  # never with the default 0
+            return clip, 0
+        composed = shared.into(clip)
+        return (composed, len(shared)) if composed is not None else (clip, 0)
+
+    def _derolled(self, clip: Clip, skip: int) -> Clip:
+        """``clip`` with its frames from ``skip`` on turned back to their stamps' camera (``rolling_shutter_readout``;
+        the frames before were, as frames of the clip they came from), the camera's rate during each frame the gyro's
+        mean over its readout (on the clip's IMU clock; the gyro bias, a fraction of a pixel over a readout, left)."""
+        readout = self.options.rolling_shutter_readout
+        if not readout or skip >= clip.n:
             return clip
-        return shared.into(clip) or clip
+        rates_b = frame_rates(clip.imu, clip.stamps[skip:], 0.5 * readout)
+        images = clip.images.copy()
+        images[skip:] = derolled(clip.images[skip:], clip.K, rates_b @ clip.T_BC[:3, :3], readout)
+        return dataclasses.replace(clip, images=images)
 
     def _initialiser(self, clip: Clip) -> Callable | None:
         """The initialisation ``anchor`` runs on the base geometry (None: its own per-clip GT-free one)."""
@@ -239,4 +261,4 @@ class StreamEstimator:
         return len(self.trajectory.resets)
 
 
-__all__ = ["INIT_SOURCES", "ClipOutcome", "StreamEstimator", "StreamOptions"]
+__all__ = ["INIT_SOURCES", "MAX_READOUT_S", "ClipOutcome", "StreamEstimator", "StreamOptions"]

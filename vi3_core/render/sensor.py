@@ -1,14 +1,14 @@
 """What a real camera's sensor and electronics do to the ideal image: rolling shutter, motion blur, auto exposure and
 gain, vignetting, sensor noise and JPEG, sized from a handheld RealSense recording (docs/evaluation.md).
 
-The renderer gives each image row its own pose (rolling shutter: ``row_times``), at the middle of that row's exposure;
-``blur`` then integrates the exposure with the scene's exact depth: every pixel is moved as the camera moves during the
-exposure (``blur_samples`` instants, the image warped to each with ``cv2.remap`` and averaged), which is exact for a
-static scene away from occlusion edges. ``Exposure`` runs the camera's auto exposure over the frames: the scene's
-brightness drifts (lamps, a window, the camera turning towards dark furniture), the exposure follows it with a lag and
-sets the frame interval when it needs more light than a frame at full rate gives (a RealSense in auto-exposure
-priority drops from 30 to 16.7 Hz in a dim room). ``finish`` turns radiance into the stored mono8 frame: vignetting,
-exposure times gain, shot and read noise, quantisation, JPEG.
+The renderer gives each image row its own pose (rolling shutter: ``vi3_core.rolling_shutter.row_times``), at the
+middle of that row's exposure; ``blur`` then integrates the exposure with the scene's exact depth: every pixel is
+moved as the camera moves during the exposure (``blur_samples`` instants, the image warped to each with ``cv2.remap``
+and averaged), which is exact for a static scene away from occlusion edges. ``Exposure`` runs the camera's auto
+exposure over the frames: the scene's brightness drifts (lamps, a window, the camera turning towards dark furniture),
+the exposure follows it with a lag and sets the frame interval when it needs more light than a frame at full rate
+gives (a RealSense in auto-exposure priority drops from 30 to 16.7 Hz in a dim room). ``finish`` turns radiance into
+the stored mono8 frame: vignetting, exposure times gain, shot and read noise, quantisation, JPEG.
 """
 
 from __future__ import annotations
@@ -62,11 +62,6 @@ REALSENSE = SensorModel(readout_s=0.025, exposure_s=0.058, blur_samples=5,
                         frame_intervals_s=(1 / 30, 1 / 25, 1 / 20, 1 / 16.67), target_grey=86.0, ae_lag=0.3,
                         brightness=(0.1, 0.35, 10.0), vignetting=0.25, read_noise=1.0, shot_noise=2.5, jpeg_quality=95,
                         drop_rate=0.0035, gap_rate=0.05)
-
-
-def row_times(stamp_s: float, height: int, readout_s: float) -> np.ndarray:
-    """[H] s: when each row of the frame stamped ``stamp_s`` (its middle row) was exposed (mid-exposure)."""
-    return stamp_s + readout_s * ((np.arange(height) + 0.5) / height - 0.5)
 
 
 def blur(image: np.ndarray, depth: np.ndarray, K: np.ndarray, rows_T_WC: np.ndarray,
@@ -146,4 +141,4 @@ def finish(radiance: np.ndarray, gain: float, model: SensorModel, rng: np.random
     return out
 
 
-__all__ = ["REALSENSE", "Exposure", "SensorModel", "blur", "finish", "row_times"]
+__all__ = ["REALSENSE", "Exposure", "SensorModel", "blur", "finish"]

@@ -362,7 +362,8 @@ def _prepare(args: argparse.Namespace) -> tuple:
         mode=settings.stream.mode, init_source=args.init_source, clips=clips, clip_length=buf.clip_length,
         stride=buf.stride, hop=buf.hop, max_clips=args.max_clips, progress=not args.no_progress,
         anchor_options=settings.anchor, init_options=settings.init, online_options=settings.online,
-        calibration_options=settings.calibration, all_depth=settings.outputs.all_depth)
+        calibration_options=settings.calibration, all_depth=settings.outputs.all_depth,
+        rolling_shutter_readout=settings.stream.rolling_shutter_readout)
     check_outputs(args)
     runs, problems = [], []
     keep = len(args.input) == 1 and args.ray is None

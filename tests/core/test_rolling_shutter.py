@@ -1,0 +1,93 @@
+"""A rolling shutter's frames turned back to their stamps' camera by the gyro (``vi3_core.rolling_shutter``), and the
+stream doing so before the backbone (``StreamOptions.rolling_shutter_readout``)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vi3_core import so3
+from vi3_core.backbones.classical import ClassicalBackbone
+from vi3_core.dataset.generate import REALSENSE_CAM
+from vi3_core.eval.runner import EvalOptions
+from vi3_core.online.stream import StreamOptions
+from vi3_core.render.raycast import Renderer
+from vi3_core.render.scene import make_scene
+from vi3_core.rolling_shutter import derolled, row_times
+from vi3_core.sim.trajectory import make_trajectory
+from vi3_core.types import Clip, ImuSamples
+
+READOUT = 0.025
+
+
+@pytest.fixture(scope="module")
+def turning_frames():
+    """The bedroom seen by a camera turning at W (rad/s, camera frame) through its stamp: the rolling-shutter frame
+    (each row from its own time's pose) and the global-shutter frame at the stamp, uint8."""
+    scene = make_scene("bedroom", seed=1)
+    renderer = Renderer(scene, REALSENSE_CAM)
+    traj = make_trajectory("drone", 3, motion="handheld", center=tuple(scene.center), extent=tuple(scene.extent))
+    T0 = traj.T_WB(np.array([2.0]))[0] @ REALSENSE_CAM.T_BC
+    H = REALSENSE_CAM.size[1]
+    w = np.array([0.3, 1.2, -0.4])
+    tau = row_times(0.0, H, READOUT)
+    rows_T = T0 @ so3.make_T(so3.exp(tau[:, None] * w), np.zeros((H, 3)))
+    shutter, _ = renderer.radiance(rows_T)
+    still, _ = renderer.radiance(np.repeat(T0[None], H, 0))
+    gain = 110.0 / float(np.mean(still))
+    return [np.clip(im * gain, 0, 255).astype(np.uint8) for im in (shutter, still)], w
+
+
+def _shift(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(dx, dy) px that moves ``b``'s content onto ``a``'s (phase correlation, Hann window)."""
+    window = cv2.createHanningWindow(a.shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(b.astype(np.float32), a.astype(np.float32), window)
+    return np.array([dx, dy])
+
+
+def test_derolling_puts_every_row_where_a_global_shutter_has_it(turning_frames):
+    (shutter, still), w = turning_frames
+    K = REALSENSE_CAM.K
+    fixed = derolled(shutter[None], K, w[None], READOUT)[0]
+    band = slice(200, 520)  # columns away from the borders the turn brings in
+    for rows in (slice(40, 168), slice(552, 680)):  # the top rows were read before the stamp, the bottom ones after
+        before = _shift(shutter[rows, band], still[rows, band])
+        after = _shift(fixed[rows, band], still[rows, band])
+        assert np.linalg.norm(before) > 3.0, before  # the turn during the readout moves them by pixels
+        assert np.linalg.norm(after) < 0.25, (before, after)
+
+
+def test_a_still_camera_or_a_global_shutter_is_left_as_it_is(turning_frames):
+    (shutter, _), w = turning_frames
+    frames = np.stack([shutter, shutter[::-1]])
+    assert derolled(frames, REALSENSE_CAM.K, np.stack([w, w]), 0.0) is frames
+    same = derolled(frames, REALSENSE_CAM.K, np.zeros((2, 3)), READOUT)
+    assert np.abs(same.astype(int) - frames).max() <= 1
+    rgb = np.repeat(frames[..., None], 3, -1)
+    assert derolled(rgb, REALSENSE_CAM.K, np.stack([w, w]), READOUT).shape == rgb.shape
+
+
+def test_the_readout_is_a_cameras():
+    assert StreamOptions(rolling_shutter_readout=0.03).rolling_shutter_readout == 0.03
+    for bad in (-0.01, 0.5, float("nan")):
+        with pytest.raises(ValueError, match="rolling_shutter_readout"):
+            StreamOptions(rolling_shutter_readout=bad)
+
+
+def test_the_stream_derolls_its_clips_by_the_gyro_and_the_setting_reaches_it(turning_frames):
+    """The stream turns each frame back by the gyro's rate over its readout (in the body frame, through the mount),
+    except frames another clip already turned (``skip``); ``vi3 eval``'s options reach it."""
+    (shutter, still), w = turning_frames
+    T_BC = REALSENSE_CAM.T_BC
+    t = np.arange(-0.1, 0.2, 0.005)
+    imu = ImuSamples(t=t, gyro=np.tile(T_BC[:3, :3] @ w, (len(t), 1)), accel=np.tile([0.0, 0.0, 9.81], (len(t), 1)))
+    clip = Clip(stamps=np.array([0.0, 0.05]), images=np.stack([shutter, still]), K=REALSENSE_CAM.K, T_BC=T_BC, imu=imu)
+    options = EvalOptions(rolling_shutter_readout=READOUT)
+    stream = options.stream(ClassicalBackbone(), online=True)
+    assert stream.options.rolling_shutter_readout == READOUT
+    turned = stream._derolled(clip, 0)
+    expected = derolled(clip.images, clip.K, np.stack([w, w]), READOUT)
+    assert np.abs(turned.images.astype(int) - expected).max() <= 1 and turned.images is not clip.images
+    assert np.array_equal(stream._derolled(clip, 1).images[0], shutter)
+    assert EvalOptions().stream(ClassicalBackbone(), online=True)._derolled(clip, 0) is clip
