@@ -23,13 +23,17 @@ def row_times(stamp_s: float, height: int, readout_s: float) -> np.ndarray:
     return stamp_s + readout_s * ((np.arange(height) + 0.5) / height - 0.5)
 
 
-def derolled(images: np.ndarray, K: np.ndarray, rates_c: np.ndarray, readout_s: float) -> np.ndarray:
-    """``images`` [n,H,W] or [n,H,W,3] uint8 of a pinhole camera ``K`` [3,3] (undistorted) with rows read top first
-    over ``readout_s`` s, turning at ``rates_c`` [n,3] rad/s (camera frame) during each frame -> the frames [same
-    shape] as seen from the camera at each frame's stamp. A point at bearing b from that camera was recorded by the
-    row read tau later at b - tau (w x b); each output pixel takes its value from there (bilinear; pixels whose
-    source is outside the frame repeat the border)."""
+def derolled(images: np.ndarray, K: np.ndarray, rates_c: np.ndarray, readout_s: float, *,
+             interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """``images`` [n,H,W] or [n,H,W,3] (uint8 frames, or float32 maps such as depth) of a pinhole camera ``K`` [3,3]
+    (undistorted) with rows read top first over ``readout_s`` s, turning at ``rates_c`` [n,3] rad/s (camera frame)
+    during each frame -> the frames [same shape] as seen from the camera at each frame's stamp. A point at bearing b
+    from that camera was recorded by the row read tau later at b - tau (w x b); each output pixel takes its value from
+    there (``interpolation``: cv2's, bilinear by default, nearest for depth; pixels whose source is outside the frame
+    repeat the border)."""
     n, H, W = images.shape[:3]
+    if np.shape(rates_c) != (n, 3):
+        raise ValueError(f"derolled: rates_c must be [{n},3] (one rate per frame), got {list(np.shape(rates_c))}")
     if readout_s == 0.0:
         return images
     # The map is computed on a grid of MAP_STEP_PX cells reaching a cell beyond every border and resized (bilinear)
@@ -49,7 +53,7 @@ def derolled(images: np.ndarray, K: np.ndarray, rates_c: np.ndarray, readout_s: 
                 ((K[0, 0], x, wy - wz * y, K[0, 2]), (K[1, 1], y, wz * x - wx, K[1, 2]))]
         map_x, map_y = (np.ascontiguousarray(cv2.resize(m, (wc * s, hc * s), interpolation=cv2.INTER_LINEAR)
                                              [s:s + H, s:s + W]) for m in maps)
-        out[i] = cv2.remap(images[i], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        out[i] = cv2.remap(images[i], map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
     return out
 
 

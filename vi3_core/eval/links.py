@@ -47,15 +47,17 @@ def scored_links(stamps0: Sequence[float], links: Sequence[tuple[float, float, f
         if link is None:
             continue
         log_ratio, sigma, clip_start = link
-        j = int(np.argmin(np.abs(t0[:k] - clip_start))) if k else -1
-        if j < 0 or abs(t0[j] - clip_start) > SAME_CLIP_S or not (lam[k] > 0 and lam[j] > 0):
+        named = np.flatnonzero(np.abs(t0[:k] - clip_start) <= SAME_CLIP_S)  # the latest: clips may share a start
+        j = int(named[-1]) if len(named) else -1
+        if j < 0 or not (lam[k] > 0 and lam[j] > 0):
             continue
         out.append(ScoredLink(log_ratio, sigma, math.log(lam[k] / lam[j]), j == k - 1, k))
     return out
 
 
 def _robust_var(x: np.ndarray) -> float:
-    return float((1.4826 * np.median(np.abs(x - np.median(x)))) ** 2)
+    """A robust second moment of the errors x [m] about zero (a bias of the links counts: it grows along a chain)."""
+    return float((1.4826 * np.median(np.abs(x))) ** 2)
 
 
 def chain_errors(links: Sequence[ScoredLink], n: int) -> np.ndarray:
@@ -100,8 +102,9 @@ class LinkScore:
                 points.append((n, _robust_var(e), len(e)))
         if len(points) >= 3:
             n, v, m = np.array(points).T
-            # each variance weighted by its own precision (the variance of a variance from m errors: 2 v^2 / m)
-            w = np.sqrt(m / 2.0) / np.maximum(v, 1e-300)
+            # each variance weighted by its own precision: that of a variance from m errors is 2 v^2 / m, and chains
+            # of n links overlap, so m of them hold about m / n independent ones
+            w = np.sqrt(m / (2.0 * n)) / np.maximum(v, 1e-300)
             fit = np.linalg.lstsq(w[:, None] * np.c_[n, np.ones_like(n)], w * v, rcond=None)[0]
             if fit[0] > 0:
                 sd = (math.sqrt(fit[0]), math.sqrt(max(fit[1], 0.0) / 2.0))
@@ -109,6 +112,7 @@ class LinkScore:
                          float(np.median([s.sigma for s in every])), *(sd if sd is not None else (None, None)))
 
     def as_dict(self) -> dict:
+        """The JSON object ``link_errors`` (``vi3 eval``; docs/evaluation.md)."""
         return {"scored": self.links, "z_median": self.z_median, "within_2sigma": self.within_2sigma,
                 "sigma_median": self.sigma_median, "per_link_sd": self.per_link_sd,
                 "reference_sd": self.reference_sd}

@@ -18,6 +18,7 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from vi3_core.anchor import MODES, AnchorOptions, anchor, check_mode
@@ -170,7 +171,7 @@ class StreamEstimator:
         configured, shared = self._compose(clip)
         current = self.calibrator.estimate if self.calibrator is not None else None
         rig = current.for_clip(configured) if current is not None else None
-        clip = self._derolled(rig.apply(configured) if rig is not None else configured, shared)
+        clip = rig.apply(configured) if rig is not None else configured
         short = ("time offset not applied: the clip's IMU ends before its frames' moved times"
                  if rig is not None and current.offset_applied and not rig.offset_applied else "")
         reason = validate.check_stamps(clip.stamps) or validate.check_imu(clip.imu, clip.stamps, self.init_options)
@@ -181,6 +182,7 @@ class StreamEstimator:
                                calibration=rig)
         if before_backbone is not None and not before_backbone():
             return None
+        clip = self._derolled(clip, shared)
         # without the window each clip stands alone (the independent evaluation runs its clips in any order)
         self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n), continued=self.window is not None)
         fast: list[AnchorResult] = []
@@ -231,15 +233,25 @@ class StreamEstimator:
 
     def _derolled(self, clip: Clip, skip: int) -> Clip:
         """``clip`` with its frames from ``skip`` on turned back to their stamps' camera (``rolling_shutter_readout``;
-        the frames before were, as frames of the clip they came from), the camera's rate during each frame the gyro's
-        mean over its readout (on the clip's IMU clock; the gyro bias, a fraction of a pixel over a readout, left)."""
+        the frames before were, as frames of the clip they came from), and its ground-truth depth with them where it
+        has any (evaluation): the camera's rate during each frame is the gyro's mean over its readout, on the frames'
+        clock, through the camera mount (the gyro bias, a fraction of a pixel over a readout, left). The rates come
+        from the clip's own IMU, which ends one sample beyond its first and last frames, so the frame two clips share
+        is turned by the gyro before it in one and after it in the other (taking the IMU history instead, which
+        reaches before the clip but not after it, moved the real recording's claims from 8 to 17 at 24 ms: the window
+        there is that sensitive; turning a shared frame once, as the front end tracks it once, is the next step)."""
         readout = self.options.rolling_shutter_readout
         if not readout or skip >= clip.n:
             return clip
-        rates_b = frame_rates(clip.imu, clip.stamps[skip:], 0.5 * readout)
+        rates = frame_rates(clip.imu, clip.stamps[skip:], 0.5 * readout) @ clip.T_BC[:3, :3]
         images = clip.images.copy()
-        images[skip:] = derolled(clip.images[skip:], clip.K, rates_b @ clip.T_BC[:3, :3], readout)
-        return dataclasses.replace(clip, images=images)
+        images[skip:] = derolled(clip.images[skip:], clip.K, rates, readout)
+        gt = clip.gt
+        if gt is not None and gt.depth is not None and gt.depth.shape[1:3] == images.shape[1:3]:
+            depth = np.array(gt.depth, np.float32, copy=True)
+            depth[skip:] = derolled(depth[skip:], clip.K, rates, readout, interpolation=cv2.INTER_NEAREST)
+            gt = dataclasses.replace(gt, depth=depth)
+        return dataclasses.replace(clip, images=images, gt=gt)
 
     def _initialiser(self, clip: Clip) -> Callable | None:
         """The initialisation ``anchor`` runs on the base geometry (None: its own per-clip GT-free one)."""
