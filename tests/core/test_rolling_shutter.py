@@ -105,3 +105,26 @@ def test_the_stream_derolls_its_clips_by_the_gyro_and_the_setting_reaches_it(tur
     assert np.array_equal(later.images[0], shutter) and np.array_equal(later.gt.depth[0], depth[0])
     assert np.abs(later.images[1].astype(int) - expected[1]).max() <= 1
     assert EvalOptions().stream(ClassicalBackbone(), online=True)._derolled(clip, 0) is clip
+
+
+def test_a_frame_two_clips_share_is_turned_once(turning_frames):
+    """The last frame of a clip and the first of the next are one frame: the next clip takes it as the clip before
+    turned it (each clip's IMU reaches one sample past its ends, so the two would turn it by different rates), and a
+    reset forgets it."""
+    (shutter, still), w = turning_frames
+    T_BC = REALSENSE_CAM.T_BC
+    t = np.arange(-0.1, 0.3, 0.005)
+    imu = ImuSamples(t=t, gyro=(1.0 + 4.0 * t)[:, None] * (T_BC[:3, :3] @ w),
+                     accel=np.tile([0.0, 0.0, 9.81], (len(t), 1)))
+    first = Clip(stamps=np.array([0.0, 0.05]), images=np.stack([still, shutter]), K=REALSENSE_CAM.K, T_BC=T_BC,
+                 imu=imu.window(-0.005, 0.055))
+    second = Clip(stamps=np.array([0.05, 0.1]), images=np.stack([shutter, still]), K=REALSENSE_CAM.K, T_BC=T_BC,
+                  imu=imu.window(0.045, 0.105))
+    stream = EvalOptions(rolling_shutter_readout=READOUT).stream(ClassicalBackbone(), online=True)
+    a = stream._derolled(first, 0)
+    b = stream._derolled(second, 0)
+    assert np.array_equal(b.images[0], a.images[1])
+    alone = EvalOptions(rolling_shutter_readout=READOUT).stream(ClassicalBackbone(), online=True)._derolled(second, 0)
+    assert not np.array_equal(alone.images[0], a.images[1])  # its own IMU turns it otherwise
+    stream.reset("time went back")
+    assert np.array_equal(stream._derolled(second, 0).images[0], alone.images[0])

@@ -120,6 +120,8 @@ class StreamEstimator:
         self.calibrator = RigCalibrator(calibration, max_rotation_error_deg=self.init_options.max_rotation_error) \
             if self.options.online and calibration.self_calibration else None
         self._chained_offset = 0.0  # s: the time offset applied to the last chained clip (``_state``)
+        # the last frames derolled (stamps [k] s, frames, ground-truth depth or None), for a clip that starts with them
+        self._turned: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
     @property
     def imu_lead(self) -> float:
@@ -144,6 +146,7 @@ class StreamEstimator:
             self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options)
             self.window.continue_after(previous, reason)
             self._chained_offset = 0.0
+        self._turned = None
         if self.calibrator is not None:
             self.calibrator.t_last = None
 
@@ -234,23 +237,35 @@ class StreamEstimator:
     def _derolled(self, clip: Clip, skip: int) -> Clip:
         """``clip`` with its frames from ``skip`` on turned back to their stamps' camera (``rolling_shutter_readout``;
         the frames before were, as frames of the clip they came from), and its ground-truth depth with them where it
-        has any (evaluation): the camera's rate during each frame is the gyro's mean over its readout, on the frames'
-        clock, through the camera mount (the gyro bias, a fraction of a pixel over a readout, left). The rates come
-        from the clip's own IMU, which ends one sample beyond its first and last frames, so the frame two clips share
-        is turned by the gyro before it in one and after it in the other (taking the IMU history instead, which
-        reaches before the clip but not after it, moved the real recording's claims from 8 to 17 at 24 ms: the window
-        there is that sensitive; turning a shared frame once, as the front end tracks it once, is the next step)."""
+        has any (evaluation): the camera's rate during each frame is the gyro's mean over its readout from the clip's
+        IMU, on the frames' clock, through the camera mount (the gyro bias, a fraction of a pixel over a readout,
+        left). A frame is turned once: a clip that starts with the frames the clip before it ended with takes them
+        as they were turned there (with the rate around a clip's last frame, from its IMU that ends one sample after
+        it), so that the frames two clips share, and their scale link, are the same in both."""
         readout = self.options.rolling_shutter_readout
         if not readout or skip >= clip.n:
             return clip
-        rates = frame_rates(clip.imu, clip.stamps[skip:], 0.5 * readout) @ clip.T_BC[:3, :3]
         images = clip.images.copy()
-        images[skip:] = derolled(clip.images[skip:], clip.K, rates, readout)
         gt = clip.gt
-        if gt is not None and gt.depth is not None and gt.depth.shape[1:3] == images.shape[1:3]:
-            depth = np.array(gt.depth, np.float32, copy=True)
+        depth = None if gt is None or gt.depth is None or gt.depth.shape[1:3] != images.shape[1:3] else \
+            np.array(gt.depth, np.float32, copy=True)
+        turned = self._turned
+        if turned is not None and skip == 0:
+            stamps, frames, frames_depth = turned
+            k = len(stamps)
+            if k < clip.n and np.array_equal(clip.stamps[:k], stamps) and frames.shape[1:] == images.shape[1:]:
+                images[:k] = frames
+                if depth is not None and frames_depth is not None:
+                    depth[:k] = frames_depth
+                skip = k
+        rates = frame_rates(clip.imu, clip.stamps[skip:], 0.5 * readout) @ clip.T_BC[:3, :3]
+        images[skip:] = derolled(clip.images[skip:], clip.K, rates, readout)
+        if depth is not None:
             depth[skip:] = derolled(depth[skip:], clip.K, rates, readout, interpolation=cv2.INTER_NEAREST)
             gt = dataclasses.replace(gt, depth=depth)
+        k = self.online_options.shared_frames if self.window is not None else 0
+        self._turned = None if not 0 < k < clip.n else \
+            (np.array(clip.stamps[-k:]), images[-k:].copy(), None if depth is None else depth[-k:].copy())
         return dataclasses.replace(clip, images=images, gt=gt)
 
     def _initialiser(self, clip: Clip) -> Callable | None:
