@@ -218,8 +218,14 @@ class StreamEstimator:
         refinement's losses use every frame's depth)."""
         if self.options.all_depth or self.options.mode != "init":
             return None
-        k = self.online_options.shared_frames if self.window is not None else 0
+        k = self._shared_frames
         return np.unique(np.concatenate([np.arange(min(k, n)), np.arange(max(n - max(k, 1), 0), n)]))
+
+    @property
+    def _shared_frames(self) -> int:
+        """Frames a clip starts with from the clip before it (``OnlineOptions.shared_frames``; 0 without the window,
+        where every clip stands alone)."""
+        return self.online_options.shared_frames if self.window is not None else 0
 
     def _compose(self, clip: Clip) -> tuple[Clip, int]:
         """``clip``, or with the window's shared frames in place of its first ones when it does not start with them
@@ -263,7 +269,7 @@ class StreamEstimator:
         if depth is not None:
             depth[skip:] = derolled(depth[skip:], clip.K, rates, readout, interpolation=cv2.INTER_NEAREST)
             gt = dataclasses.replace(gt, depth=depth)
-        k = self.online_options.shared_frames if self.window is not None else 0
+        k = self._shared_frames
         self._turned = None if not 0 < k < clip.n else \
             (np.array(clip.stamps[-k:]), images[-k:].copy(), None if depth is None else depth[-k:].copy())
         return dataclasses.replace(clip, images=images, gt=gt)
