@@ -191,14 +191,16 @@ class ClipPublisher:
 def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: float, *, drops: str,
                 clip_frame: str, result: AnchorResult | None = None, decision: OnlineDecision | None = None,
                 trajectory: Trajectory | None = None, rig: RigEstimate | None = None, rig_note: str = "",
-                output_errors: Sequence[tuple[str, str]] = ()) -> DiagStatus:
+                output_errors: Sequence[tuple[str, str]] = (), front_end: dict | None = None) -> DiagStatus:
     """The ``~/status`` entry of one result of the node's clip ``index``, processed as ``clip`` (the frames it spans:
     ``t_first``, ``t_last``): ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
     wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
     ``result`` of the anchoring (None: the data checks rejected the clip before the backbone), with the online
     window's ``decision`` and the odom ``trajectory`` (online) the window's decision and the odom segment, and the
     ``rig``'s self-calibration (key ``rig``; ``rig_note``: why the clip did not add to it or take all of it); the
-    outputs of the clip that could not be built (``ClipPublisher.take_errors``: key ``output_errors``, level ERROR)."""
+    outputs of the clip that could not be built (``ClipPublisher.take_errors``: key ``output_errors``, level ERROR);
+    ``front_end``: where the backbone's front end lost the tracks into the frames this clip tracked (the ``classical``
+    backbone's ``tracks.FrameLosses`` as a dict; key ``front_end``)."""
     level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
     if drops and level is Level.OK:
         level = Level.WARN
@@ -228,6 +230,12 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
         values["rig"] = rig.describe()
     if rig_note:
         values["rig_note"] = rig_note
+    if front_end:
+        f = front_end
+        values["front_end"] = (f"{f['frames']} frames, {f['followed']} tracks followed; lost: {f['lost_flow']} no "
+                               f"flow, {f['lost_round_trip']} round trip, {f['lost_border']} border, "
+                               f"{f['lost_epipolar']} epipolar; {f['new']} new corners, {f['new_lost']} of them lost "
+                               "at their first step")
     if result is not None and kind != "init":
         values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})

@@ -325,9 +325,14 @@ class Pipeline:
         status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
                              trajectory=self.stream.trajectory, rig=self._rig, rig_note=self._rig_note,
-                             output_errors=errors)
+                             output_errors=errors, front_end=self._front_end(result))
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),
                    status, final=kind != "init" or self.settings.stream.mode == "init")
+
+    def _front_end(self, result: AnchorResult | None) -> dict | None:
+        """Where the backbone's front end lost the tracks of the clip it just predicted (None: it did not run, or it
+        has no front end)."""
+        return self.stream.backbone.diagnostics().get("front_end") if result is not None else None
 
     def _report_skip(self, index: int, reason: str, detail: str, stamp_ns: int, level: Level = Level.WARN) -> None:
         values = {"clip": index, "result": "skipped", "reason": reason, "detail": detail,

@@ -73,16 +73,22 @@ def test_vi3_eval_chained_json_and_tum(cache_dir, tmp_path, capsys):
 def test_vi3_eval_scores_the_scale_links_against_the_ground_truth(cache_dir, capsys):
     """Three consecutive clips: the second and third join the window through their scale links, and each link's
     ratio is scored against the ratio of the two clips' own scales on the ground truth (a render's links are good
-    to their sigmas)."""
+    to their sigmas); the front end's losses are reported per clip and over the run."""
     asl = cached_sequence(cache_dir, seconds=2.5, seed=1, with_depth=False)
     common = ["eval", str(asl), "--clips", "sliding", "--max-clips", "3", "--no-progress"]
     assert vi3_main([*common, "--json"]) == 0
-    chained = json.loads(capsys.readouterr().out)["chained"]
+    report = json.loads(capsys.readouterr().out)
+    chained = report["chained"]
     links = chained["link_errors"]
     assert links["scored"] == chained["links"]["accepted"] == 2 and links["per_link_sd"] is None, chained
     assert links["z_median"] < 3.0 and links["within_2sigma"] >= 0.5 and 0.0 < links["sigma_median"] < 0.02, links
+    # the front end's losses: each frame counted once (the shared frame by the clip that tracked it)
+    assert [c["front_end"]["frames"] for c in report["clips"]] == [8, 7, 7]
+    front = report["front_end"]
+    assert front["frames"] == 22 and front["followed_per_frame"] > 100 and 0.0 < sum(front["lost"].values()) < 0.5
     assert vi3_main(common) == 0
-    assert "scale links against the ground truth: 2 scored" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "scale links against the ground truth: 2 scored" in out and "front end (22 frames):" in out
 
 
 def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):

@@ -136,6 +136,13 @@ class Backbone(abc.ABC):
         backbone kept of earlier clips (the ``classical`` front end's tracks) may shape its prediction."""
         return
 
+    def forget(self) -> None:
+        """Drop what the backbone kept of earlier clips (the ``classical`` front end's tracks and carried structure):
+        its next clip starts a new stream (``StreamEstimator``: a new one, or time went back). Without it, a clip whose
+        stamps a previous stream's frames had (the same recording evaluated twice) would continue that stream's
+        tracks. Nothing to drop for a model, which keeps nothing between clips."""
+        return
+
     @property
     def exact_scale(self) -> float | None:
         """Metres per model unit of the last prediction where the backbone knows it exactly (the evaluation's

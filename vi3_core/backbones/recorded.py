@@ -49,6 +49,9 @@ class RecordingBackbone(Backbone):
         self._key = clip_key(clip)
         self.inner.bind(clip, depth_frames=depth_frames, continued=continued)
 
+    def forget(self) -> None:
+        self.inner.forget()
+
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> BackboneInputs:
         return self.inner.preprocess(images, K)
 

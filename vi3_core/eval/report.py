@@ -94,13 +94,39 @@ def status_note(evals: Sequence[ClipEval]) -> str:
             f"reason ({n}): {reason}")
 
 
+def front_end_losses(evals: Sequence[ClipEval]) -> dict | None:
+    """Where the front end lost its tracks over the clips whose backbone says (the ``classical`` backbone's
+    ``front_end``, ``tracks.FrameLosses``): frames tracked, tracks followed and new corners per frame, the share of
+    the followed tracks each check dropped (``lost``: flow, round_trip, border, epipolar) and of the new corners lost
+    at their first step (``new_lost``); None where no clip says."""
+    total: Counter = Counter()
+    for e in evals:
+        if isinstance(e.backbone.get("front_end"), dict):
+            total.update(e.backbone["front_end"])
+    if not total["frames"]:
+        return None
+    followed = max(total["followed"], 1)
+    return {"frames": total["frames"], "followed_per_frame": total["followed"] / total["frames"],
+            "lost": {name: total[f"lost_{name}"] / followed for name in ("flow", "round_trip", "border", "epipolar")},
+            "new_per_frame": total["new"] / total["frames"], "new_lost": total["new_lost"] / max(total["new"], 1)}
+
+
+def _front_end_line(losses: dict | None) -> str:
+    if not losses:
+        return ""
+    lost = ", ".join(f"{100 * v:.1f} % {k.replace('_', ' ')}" for k, v in losses["lost"].items())
+    return (f"front end ({losses['frames']} frames): {losses['followed_per_frame']:.0f} tracks followed per frame, "
+            f"lost into the next by the checks: {lost}; {losses['new_per_frame']:.0f} new corners per frame, "
+            f"{100 * losses['new_lost']:.0f} % of them lost at their first step")
+
+
 def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3", backbone: str = "",
               sequence: str = "") -> dict:
     """The JSON report: ``n_clips``, ``n_ok``, ``n_paired`` (clips in the paired medians), ``columns`` (paired
     medians of every column: base, init, cond/ttr), ``base`` and ``vi3`` (its base and ``mode`` columns),
     ``base_all`` (the base over every clip), ``init`` (median init errors over ok clips), ``claimed_outliers`` and
     ``sigma_calibration`` (``vi3_core.eval.claims``), ``status_counts``, ``note`` (why no clip is ok, "" otherwise),
-    ``hint`` (``gyro_check_hint``) and a per-clip list."""
+    ``hint`` (``gyro_check_hint``), ``front_end`` (``front_end_losses``) and a per-clip list."""
     ok = [e for e in evals if e.ok]
     columns = expected_columns(mode)
     paired = [e for e in evals if all(c in e.columns for c in columns)]
@@ -120,12 +146,14 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
         "status_counts": {s.value: counts.get(s.value, 0) for s in InitStatus},
         "note": status_note(evals),
         "hint": gyro_check_hint(sum(e.reason.startswith(GYRO_FAILURE) for e in evals), len(evals)),
+        "front_end": front_end_losses(evals),
         "clips": [{"frames": [int(e.indices[0]), int(e.indices[-1])], "t0": float(e.stamps[0]), "status": e.status,
                    "reason": e.reason, "mode": e.mode,
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
                    "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
                    "scale_rel_sigma": rel_sigma(e),
                    "scale_exact": e.init.scale / e.exact_scale if e.ok and e.exact_scale else None,
+                   **({"front_end": e.backbone["front_end"]} if "front_end" in e.backbone else {}),
                    **({"rig": e.calibration.as_dict()} if e.calibration is not None else {})} for e in evals],
     })
 
@@ -184,10 +212,11 @@ def format_tables(summary: dict) -> str:
     claims = (f"claimed scales (ok clips) more than 10 % off: {format_outliers(summary['claimed_outliers'])}; "
               f"scale sigma: {format_calibration(summary['sigma_calibration'])}")
     parts = [title, _grid(["Metric", *(COLUMN_LABELS[c] for c in cols), "Base (all)"], rows), claims,
-             _grid(["Initialisation", "error"], init_rows), f"clip status: {status}"]
+             _grid(["Initialisation", "error"], init_rows), f"clip status: {status}",
+             _front_end_line(summary.get("front_end"))]
     if summary.get("depth_gt", "").startswith("unreadable"):
         parts.append(f"depth ground truth {summary['depth_gt']}")
-    return "\n\n".join(parts + [summary[k] for k in ("note", "hint") if summary.get(k)])
+    return "\n\n".join([p for p in parts if p] + [summary[k] for k in ("note", "hint") if summary.get(k)])
 
 
 def format_clips(summary: dict) -> str:

@@ -110,6 +110,7 @@ class StreamEstimator:
         self.options = options or StreamOptions()
         check_mode(backbone, self.options.mode)  # an unsupported mode fails here, not once per clip
         self.backbone = backbone
+        backbone.forget()  # a new stream: nothing of another stream's frames carries into it
         self.online_options = online or OnlineOptions()
         self.init_options = init or InitOptions()
         self.accel_A = self.init_options.accel_A  # the accelerometer's calibration (None: none), parsed once
@@ -136,11 +137,12 @@ class StreamEstimator:
         return max(0.0, est.time_offset + min(3.0 * est.time_offset_sigma, IMU_LEAD_MARGIN_S))
 
     def reset(self, reason: str) -> None:
-        """Forget the stream (``reason``: time went back, so the window, its biases, the kept IMU and the odom state
-        no longer hold): the next clip starts as the first did, except that the trajectory's segments count on and
-        the next chained clip starts a new one (``OnlineEstimator.continue_after``). The rig's self-calibration is
-        kept (the rig did not change), its random walk restarting from the next clip. Nothing to forget without
-        ``online``."""
+        """Forget the stream (``reason``: time went back, so the window, its biases, the kept IMU, the odom state and
+        what the backbone kept of earlier clips no longer hold): the next clip starts as the first did, except that the
+        trajectory's segments count on and the next chained clip starts a new one (``OnlineEstimator.continue_after``).
+        The rig's self-calibration is kept (the rig did not change), its random walk restarting from the next clip.
+        Without ``online`` only the backbone has anything to forget."""
+        self.backbone.forget()
         if self.window is not None:
             previous = self.window.trajectory
             self.window = OnlineEstimator(options=self.online_options, init_options=self.init_options)

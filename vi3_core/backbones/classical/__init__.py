@@ -32,7 +32,7 @@ The last clip's inputs, status and reason are also on the backbone (``last_input
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
@@ -43,7 +43,7 @@ from vi3_core.backbones._hub import check_clip, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
-from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks
+from vi3_core.backbones.classical.tracks import FrameLosses, FrameTracker, TrackerOptions, Tracks
 from vi3_core.camera import backproject
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
@@ -68,7 +68,8 @@ class ClassicalInputs(BackboneInputs):
 
     base_R_wc [n,3,3], base_t_wc [n,3] camera-to-world (frame 0 = identity, normalised scale); base_depth,
     base_conf [n,h,w]; corrections: this clip's ``Corrections``; status/reason: see the module docstring;
-    diagnostics: counts, errors, stage timings (s) and the plane-sweep threads (mvs_workers).
+    diagnostics: counts, errors, stage timings (s), the plane-sweep threads (mvs_workers) and the front end's losses
+    (front_end, ``ClassicalBackbone.diagnostics``).
     """
 
     base_R_wc: torch.Tensor
@@ -165,6 +166,10 @@ class ClassicalBackbone(Backbone):
         self._depth_frames = depth_frames
         self._stamps = None if clip is None or not continued else np.asarray(clip.stamps, np.float64)
 
+    def forget(self) -> None:
+        self.tracker.reset()
+        self._structure = None
+
     @property
     def last_status(self) -> str:
         """Status of the last preprocessed clip ('' before any)."""
@@ -177,7 +182,8 @@ class ClassicalBackbone(Backbone):
 
     def diagnostics(self) -> dict:
         """The last clip's status and reason, its SfM counts and errors (tracks, points, reproj_px_median, ...),
-        the scale divisor, the stage timings tracks_s, sfm_s, mvs_s (s) and mvs_workers (plane-sweep threads);
+        the scale divisor, the stage timings tracks_s, sfm_s, mvs_s (s), mvs_workers (plane-sweep threads) and
+        front_end: where the tracks into the frames this clip tracked were lost (``tracks.FrameLosses`` as a dict);
         empty before any clip."""
         if self.last_inputs is None:
             return {}
@@ -198,10 +204,11 @@ class ClassicalBackbone(Backbone):
         with torch_threads(1):
             return self._preprocess(images, K, workers, depth_frames, stamps)
 
-    def _track(self, gray: np.ndarray, stamps: np.ndarray | None) -> tuple[Tracks, list[float]]:
-        """The tracks of the clip's frames ``gray`` [n,H,W] and the frames' keys: the frames the front end has not
-        seen are added in order (each frame once); a clip that does not continue the front end's last frame (or comes
-        without stamps: ``predict`` without ``bind``) starts it afresh."""
+    def _track(self, gray: np.ndarray, stamps: np.ndarray | None) -> tuple[Tracks, list[float], FrameLosses]:
+        """The tracks of the clip's frames ``gray`` [n,H,W], the frames' keys and what became of the tracks into the
+        frames this clip added: the frames the front end has not seen are added in order (each frame once); a clip
+        that does not continue the front end's last frame (or comes without stamps: ``predict`` without ``bind``)
+        starts it afresh."""
         tr = self.tracker
         if stamps is None or len(stamps) != len(gray):
             tr.reset()
@@ -219,7 +226,7 @@ class ClassicalBackbone(Backbone):
             self._structure, done = None, 0
         for key, g in zip(keys[done:], gray[done:]):
             tr.add(key, g)
-        return tr.tracks(keys), keys
+        return tr.tracks(keys), keys, tr.losses(keys[done:])
 
     def _known(self, tracks: Tracks, first_key: float) -> np.ndarray | None:
         """[m,3] points of ``tracks`` the clip before reconstructed, in this clip's world (its first camera, which was
@@ -256,7 +263,7 @@ class ClassicalBackbone(Backbone):
 
         timings = {}
         t0 = time.perf_counter()
-        tracks, keys = self._track(gray, stamps)
+        tracks, keys, losses = self._track(gray, stamps)
         timings["tracks_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         sfm = estimate_poses(tracks, K, known=self._known(tracks, keys[0]), bundle_adjust=self.bundle_adjust)
@@ -289,7 +296,7 @@ class ClassicalBackbone(Backbone):
         inputs = ClassicalInputs(
             images=img.to(dt), K=K_t.to(dt), src_hw=src_hw, base_R_wc=R, base_t_wc=t, base_depth=depth, base_conf=conf,
             corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
-            diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers})
+            diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers, "front_end": asdict(losses)})
         self.last_inputs = inputs
         return inputs
 

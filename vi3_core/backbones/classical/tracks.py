@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass, replace
 
 import cv2
 import numpy as np
@@ -41,6 +41,28 @@ class Tracks:
 
     def __len__(self) -> int:
         return len(self.uv)
+
+
+@dataclass(frozen=True)
+class FrameLosses:
+    """What became of the tracks followed into a frame (summed over frames by ``+``): frames: how many frames this
+    sums; followed: live tracks of the frame before; lost_flow: Lucas-Kanade found no flow (either way);
+    lost_round_trip: the backward flow missed the start by ``fb_threshold_px`` or more; lost_border: the flow left the
+    frame; lost_epipolar: outliers of the pair's epipolar geometry; new: corners detected in the frame; new_lost: of
+    the corners detected in the frame before, those lost into this one (corners on noise, on a plain wall or in the
+    dark, die at their first step)."""
+
+    followed: int = 0
+    lost_flow: int = 0
+    lost_round_trip: int = 0
+    lost_border: int = 0
+    lost_epipolar: int = 0
+    new: int = 0
+    new_lost: int = 0
+    frames: int = 0
+
+    def __add__(self, other: FrameLosses) -> FrameLosses:
+        return FrameLosses(*(a + b for a, b in zip(astuple(self), astuple(other))))
 
 
 @dataclass(frozen=True)
@@ -72,8 +94,9 @@ class FrameTracker:
     """Tracks of a stream of frames (see the module docstring). Not thread-safe: one caller adds frames in order.
 
     ``add(key, gray)``: the next frame, ``key`` its stamp (increasing), gray [H,W] uint8; ``tracks(keys)``: the tracks
-    of those frames (consecutive, all still in the history); ``reset()`` forgets everything (time went back, frames
-    were skipped). ``last_key``: the newest frame's key (None after a reset)."""
+    of those frames (consecutive, all still in the history); ``losses(keys)``: where the tracks into those frames
+    were lost; ``reset()`` forgets everything (time went back, frames were skipped). ``last_key``: the newest frame's
+    key (None after a reset)."""
 
     def __init__(self, options: TrackerOptions | None = None) -> None:
         self.options = options or TrackerOptions()
@@ -82,7 +105,8 @@ class FrameTracker:
 
     def reset(self) -> None:
         self._fast.setThreshold(self.options.fast_threshold)
-        self._frames: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=self.options.history)
+        # (key, track ids, positions [k,2], what became of the tracks followed into it) per frame
+        self._frames: deque[tuple[float, np.ndarray, np.ndarray, FrameLosses]] = deque(maxlen=self.options.history)
         self._gray: np.ndarray | None = None
         self._ids = np.zeros(0, np.int64)
         self._pts = np.zeros((0, 2), np.float32)
@@ -100,20 +124,21 @@ class FrameTracker:
 
     def keys(self) -> list[float]:
         """The keys of the frames in the history, oldest first."""
-        return [k for k, _, _ in self._frames]
+        return [f[0] for f in self._frames]
 
     def add(self, key: float, gray: np.ndarray) -> None:
         if self._gray is not None and self._gray.shape != gray.shape:
             raise ValueError(f"frame of {gray.shape} after frames of {self._gray.shape}: reset the tracker first")
-        if len(self._pts):
-            self._follow(gray)
+        losses = self._follow(gray) if len(self._pts) else FrameLosses()
+        born = len(self._ids)
         self._top_up(gray)
+        losses = replace(losses, new=len(self._ids) - born, frames=1)
         self._gray = gray
-        self._frames.append((float(key), self._ids.copy(), self._pts.astype(np.float64)))
+        self._frames.append((float(key), self._ids.copy(), self._pts.astype(np.float64), losses))
 
-    def _follow(self, gray: np.ndarray) -> None:
+    def _follow(self, gray: np.ndarray) -> FrameLosses:
         """The live tracks into ``gray``: forward and backward flow, the round trip within ``fb_threshold_px``, inside
-        the frame, and inliers of the pair's epipolar geometry."""
+        the frame, and inliers of the pair's epipolar geometry; returns what each check dropped."""
         o = self.options
         lk = dict(winSize=(o.window, o.window), maxLevel=o.levels,
                   criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03))
@@ -125,14 +150,21 @@ class FrameTracker:
                                                  **{**lk, "maxLevel": min(o.levels, 1)})
         nxt, back = nxt.reshape(-1, 2), back.reshape(-1, 2)
         H, W = gray.shape
-        ok = (st.ravel() == 1) & (st_b.ravel() == 1)
-        ok &= np.linalg.norm(back - self._pts, axis=1) < o.fb_threshold_px
-        ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
-        if ok.sum() >= 16:  # epipolar outliers of the pair (a track that slid along an edge, or onto another)
+        flow = (st.ravel() == 1) & (st_b.ravel() == 1)
+        round_trip = flow & (np.linalg.norm(back - self._pts, axis=1) < o.fb_threshold_px)
+        ok = round_trip & (nxt[:, 0] >= 0) & (nxt[:, 0] <= W - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= H - 1)
+        inside = int(ok.sum())
+        if inside >= 16:  # epipolar outliers of the pair (a track that slid along an edge, or onto another)
             _, inl = cv2.findFundamentalMat(self._pts[ok], nxt[ok], cv2.FM_RANSAC, o.ransac_px, 0.99)
             if inl is not None:
                 ok[np.flatnonzero(ok)[inl.ravel() == 0]] = False
+        newest = self._frames[-1][3].new if self._frames else 0  # the last ``newest`` ids are the frame's new corners
+        losses = FrameLosses(followed=len(ok), lost_flow=int((~flow).sum()),
+                             lost_round_trip=int((flow & ~round_trip).sum()),
+                             lost_border=int(round_trip.sum()) - inside, lost_epipolar=inside - int(ok.sum()),
+                             new_lost=int((~ok[len(ok) - newest:]).sum()) if newest else 0)
         self._ids, self._pts = self._ids[ok], nxt[ok].astype(np.float32)
+        return losses
 
     def _top_up(self, gray: np.ndarray) -> None:
         """New FAST corners in the grid's cells that hold fewer than their share of the budget (detected there only),
@@ -193,13 +225,21 @@ class FrameTracker:
     def tracks(self, keys: Sequence[float]) -> Tracks:
         """The tracks of the frames ``keys`` (consecutive frames of the history, in order): [m, n, 2] for every
         track seen in at least one of them. Raises KeyError for a frame not in the history."""
-        index = {k: i for i, (k, _, _) in enumerate(self._frames)}
-        frames = [self._frames[index[float(k)]] for k in keys]
+        frames = self._history(keys)
         ids = np.unique(np.concatenate([f[1] for f in frames])) if frames else np.zeros(0, np.int64)
         uv = np.full((len(ids), len(frames), 2), np.nan)
-        for j, (_, fid, pts) in enumerate(frames):
+        for j, (_, fid, pts, _) in enumerate(frames):
             uv[np.searchsorted(ids, fid), j] = pts
         return Tracks(uv=uv, ids=ids)
+
+    def losses(self, keys: Sequence[float]) -> FrameLosses:
+        """What became of the tracks followed into the frames ``keys`` (frames of the history), summed. Raises
+        KeyError for a frame not in the history."""
+        return sum((f[3] for f in self._history(keys)), FrameLosses())
+
+    def _history(self, keys: Sequence[float]) -> list[tuple[float, np.ndarray, np.ndarray, FrameLosses]]:
+        index = {f[0]: i for i, f in enumerate(self._frames)}
+        return [self._frames[index[float(k)]] for k in keys]
 
 
 def cell_of(pts: np.ndarray, W: int, H: int, cols: int, rows: int) -> np.ndarray:
