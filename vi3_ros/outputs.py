@@ -232,10 +232,10 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
         values["rig_note"] = rig_note
     if front_end:
         f = front_end
-        values["front_end"] = (f"{f['frames']} frames, {f['followed']} tracks followed; lost: {f['lost_flow']} no "
-                               f"flow, {f['lost_round_trip']} round trip, {f['lost_border']} border, "
-                               f"{f['lost_epipolar']} epipolar; {f['new']} new corners, {f['new_lost']} of them lost "
-                               "at their first step")
+        values["front_end"] = (f"{f['frames']} frames ({f['starts']} started afresh), {f['followed']} tracks followed; "
+                               f"lost: {f['lost_no_flow']} no flow, {f['lost_round_trip']} round trip, "
+                               f"{f['lost_border']} border, {f['lost_epipolar']} epipolar; {f['new']} new corners; "
+                               f"{f['new_lost']} new corners lost at their first step")
     if result is not None and kind != "init":
         values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})

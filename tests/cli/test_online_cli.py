@@ -85,10 +85,11 @@ def test_vi3_eval_scores_the_scale_links_against_the_ground_truth(cache_dir, cap
     # the front end's losses: each frame counted once (the shared frame by the clip that tracked it)
     assert [c["front_end"]["frames"] for c in report["clips"]] == [8, 7, 7]
     front = report["front_end"]
-    assert front["frames"] == 22 and front["followed_per_frame"] > 100 and 0.0 < sum(front["lost"].values()) < 0.5
+    assert front["frames"] == 22 and front["starts"] == 1 and front["followed_per_frame"] > 100
+    assert 0.0 < sum(front["lost"].values()) < 0.5 and 0.0 <= front["new_lost"] <= 1.0
     assert vi3_main(common) == 0
     out = capsys.readouterr().out
-    assert "scale links against the ground truth: 2 scored" in out and "front end (22 frames):" in out
+    assert "scale links against the ground truth: 2 scored" in out and "front end (22 frames, 1 started afresh):" in out
 
 
 def test_vi3_eval_pools_several_sequences(cache_dir, tmp_path, capsys):

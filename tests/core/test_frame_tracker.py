@@ -134,9 +134,10 @@ def test_the_tracker_says_where_its_tracks_were_lost(stream):
             live.append(len(tracker.tracks([float(i)])))
         per_frame = [tracker.losses([float(i)]) for i in range(8)]
         for i, f in enumerate(per_frame):
-            lost = f.lost_flow + f.lost_round_trip + f.lost_border + f.lost_epipolar
-            assert f.frames == 1 and f.followed == (live[i - 1] if i else 0) and live[i] == f.followed - lost + f.new
-            assert f.new_lost <= (per_frame[i - 1].new if i else 0)
+            lost = f.lost_no_flow + f.lost_round_trip + f.lost_border + f.lost_epipolar
+            assert f.frames == 1 and f.starts == (i == 0) and f.followed == (live[i - 1] if i else 0)
+            assert live[i] == f.followed - lost + f.new + f.seeded and (f.seeded > 0) == (i == 0) and f.new_lost <= (
+                per_frame[i - 1].new if i else 0)
         total = tracker.losses([float(i) for i in range(1, 8)])
         assert total.frames == 7 and total.followed == sum(f.followed for f in per_frame[1:])
         first_step[dark], round_trip[dark] = total.new_lost / total.new, total.lost_round_trip / total.followed
@@ -149,7 +150,7 @@ def test_the_tracker_says_where_its_tracks_were_lost(stream):
     tracker.add(0.0, gray[7])
     tracker.add(1.0, swapped)
     f = tracker.losses([1.0])
-    assert f.lost_round_trip + f.lost_flow > 0.3 * f.followed and f.lost_epipolar < 0.1 * f.followed, f
+    assert f.lost_round_trip + f.lost_no_flow > 0.3 * f.followed and f.lost_epipolar < 0.1 * f.followed, f
     with pytest.raises(KeyError):
         tracker.losses([2.0])
 
@@ -166,6 +167,21 @@ def test_reset_forgets_and_a_frame_of_another_size_is_refused(stream):
     assert tracker.frame_shape == (100, gray.shape[2])
     with pytest.raises(ValueError, match="TrackerOptions"):
         TrackerOptions(max_features=0)
+
+
+def test_a_clip_longer_than_the_history_is_held_whole(room):
+    """The node's clips run to 64 frames, past the tracker's 32-frame history: the backbone holds a clip whole (it
+    raised KeyError for a clip of 33 frames), here a history of 4 against a clip of 8."""
+    clip = make_clip(room, np.arange(0, 16, 2))
+    backbone = ClassicalBackbone(tracker=TrackerOptions(history=4))
+    backbone.bind(clip, depth_frames=np.array([7]))
+    assert backbone.preprocess(clip.images, clip.K).status == "ok"
+    assert backbone.diagnostics()["front_end"]["frames"] == 8 and len(backbone.tracker.keys()) == 8
+    backbone.tracker.reset()  # held through a reset
+    for i in range(9):
+        backbone.tracker.add(float(i), clip.images[i % 8] if clip.images.ndim == 3 else
+                             cv2.cvtColor(clip.images[i % 8], cv2.COLOR_RGB2GRAY))
+    assert backbone.tracker.keys() == [float(i) for i in range(1, 9)]
 
 
 def _turning_tracks(n: int = 8, deg_per_frame: float = 9.0, seed: int = 0) -> tuple[Tracks, np.ndarray, np.ndarray,

@@ -25,8 +25,8 @@ class ClipEval:
     initialisation against GT; decision: the online window's decision, with the clip's own initialisation (chained
     runs only); calibration: the rig's estimate after the clip (chained runs with self-calibration); exact_scale:
     metres per model unit of the clip's prediction where the backbone knew it exactly (``Backbone.exact_scale``: the
-    ground-truth instrument), else None; backbone: what the backbone reported about the clip (``Backbone.diagnostics``,
-    empty when it did not run).
+    ground-truth instrument), else None; backbone_diagnostics: what the backbone reported about the clip
+    (``Backbone.diagnostics``, empty when it did not run).
     """
 
     indices: np.ndarray
@@ -44,7 +44,7 @@ class ClipEval:
     decision: OnlineDecision | None = None
     calibration: RigEstimate | None = None
     exact_scale: float | None = None
-    backbone: dict = field(default_factory=dict)
+    backbone_diagnostics: dict = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:

@@ -19,6 +19,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from vi3_core.backbones.classical.tracks import FrameLosses
 from vi3_core.eval import coverage
 from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
 from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
@@ -96,28 +97,29 @@ def status_note(evals: Sequence[ClipEval]) -> str:
 
 def front_end_losses(evals: Sequence[ClipEval]) -> dict | None:
     """Where the front end lost its tracks over the clips whose backbone says (the ``classical`` backbone's
-    ``front_end``, ``tracks.FrameLosses``): frames tracked, tracks followed and new corners per frame, the share of
-    the followed tracks each check dropped (``lost``: flow, round_trip, border, epipolar) and of the new corners lost
-    at their first step (``new_lost``); None where no clip says."""
-    total: Counter = Counter()
-    for e in evals:
-        if isinstance(e.backbone.get("front_end"), dict):
-            total.update(e.backbone["front_end"])
-    if not total["frames"]:
+    ``front_end``, ``tracks.FrameLosses``, summed): frames tracked and how many of them started afresh (``starts``:
+    an independent run starts every clip), then per frame that followed tracks: tracks followed, the share of them
+    each check dropped (``lost``: no_flow, round_trip, border, epipolar), new corners, and the share of those lost at
+    their first step (``new_lost``); None where no clip says."""
+    rows = [e.backbone_diagnostics.get("front_end") for e in evals]
+    total = sum((FrameLosses(**r) for r in rows if r), FrameLosses())
+    if not total.frames:
         return None
-    followed = max(total["followed"], 1)
-    return {"frames": total["frames"], "followed_per_frame": total["followed"] / total["frames"],
-            "lost": {name: total[f"lost_{name}"] / followed for name in ("flow", "round_trip", "border", "epipolar")},
-            "new_per_frame": total["new"] / total["frames"], "new_lost": total["new_lost"] / max(total["new"], 1)}
+    following, followed = max(total.frames - total.starts, 1), max(total.followed, 1)
+    return {"frames": total.frames, "starts": total.starts, "followed_per_frame": total.followed / following,
+            "lost": {name: getattr(total, f"lost_{name}") / followed
+                     for name in ("no_flow", "round_trip", "border", "epipolar")},
+            "new_per_frame": total.new / following, "new_lost": total.new_lost / max(total.new, 1)}
 
 
 def _front_end_line(losses: dict | None) -> str:
     if not losses:
         return ""
     lost = ", ".join(f"{100 * v:.1f} % {k.replace('_', ' ')}" for k, v in losses["lost"].items())
-    return (f"front end ({losses['frames']} frames): {losses['followed_per_frame']:.0f} tracks followed per frame, "
-            f"lost into the next by the checks: {lost}; {losses['new_per_frame']:.0f} new corners per frame, "
-            f"{100 * losses['new_lost']:.0f} % of them lost at their first step")
+    return (f"front end ({losses['frames']} frames, {losses['starts']} started afresh): "
+            f"{losses['followed_per_frame']:.0f} tracks followed per frame, lost into the next by the checks: {lost}; "
+            f"{losses['new_per_frame']:.0f} new corners per frame, {100 * losses['new_lost']:.0f} % of them lost at "
+            "their first step")
 
 
 def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3", backbone: str = "",
@@ -153,7 +155,8 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
                    "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
                    "scale_rel_sigma": rel_sigma(e),
                    "scale_exact": e.init.scale / e.exact_scale if e.ok and e.exact_scale else None,
-                   **({"front_end": e.backbone["front_end"]} if "front_end" in e.backbone else {}),
+                   **({"front_end": e.backbone_diagnostics["front_end"]}
+                      if e.backbone_diagnostics.get("front_end") else {}),
                    **({"rig": e.calibration.as_dict()} if e.calibration is not None else {})} for e in evals],
     })
 

@@ -127,7 +127,7 @@ def evaluate_clip(clip: Clip, stream: StreamEstimator, *, indices: np.ndarray | 
                     init_metrics=metrics.init_metrics(init, clip.gt), decision=outcome.decision,
                     calibration=outcome.calibration,
                     exact_scale=stream.backbone.exact_scale if result is not None else None,
-                    backbone=dict(stream.backbone.diagnostics()) if result is not None else {})
+                    backbone_diagnostics=dict(stream.backbone.diagnostics()) if result is not None else {})
 
 
 def evaluate_frames(seq: Sequence, idx: np.ndarray, backbone: Backbone, *, options: EvalOptions) -> ClipEval:

@@ -167,8 +167,9 @@ class ClassicalBackbone(Backbone):
         self._stamps = None if clip is None or not continued else np.asarray(clip.stamps, np.float64)
 
     def forget(self) -> None:
+        """Drop the front end's tracks, the carried structure and the last clip's inputs (``Backbone.forget``)."""
         self.tracker.reset()
-        self._structure = None
+        self._structure, self.last_inputs = None, None
 
     @property
     def last_status(self) -> str:
@@ -210,6 +211,7 @@ class ClassicalBackbone(Backbone):
         that does not continue the front end's last frame (or comes without stamps: ``predict`` without ``bind``)
         starts it afresh."""
         tr = self.tracker
+        tr.hold(len(gray))
         if stamps is None or len(stamps) != len(gray):
             tr.reset()
             keys = [float(i) for i in range(len(gray))]

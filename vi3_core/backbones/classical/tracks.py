@@ -46,23 +46,31 @@ class Tracks:
 @dataclass(frozen=True)
 class FrameLosses:
     """What became of the tracks followed into a frame (summed over frames by ``+``): frames: how many frames this
-    sums; followed: live tracks of the frame before; lost_flow: Lucas-Kanade found no flow (either way);
+    sums; starts: of them, frames with no track to follow (the first after a reset), whose corners are ``seeded``;
+    followed: live tracks of the frame before; lost_no_flow: Lucas-Kanade found no flow (either way);
     lost_round_trip: the backward flow missed the start by ``fb_threshold_px`` or more; lost_border: the flow left the
-    frame; lost_epipolar: outliers of the pair's epipolar geometry; new: corners detected in the frame; new_lost: of
-    the corners detected in the frame before, those lost into this one (corners on noise, on a plain wall or in the
-    dark, die at their first step)."""
+    frame; lost_epipolar: outliers of the pair's epipolar geometry; new: corners detected in a frame that followed
+    tracks (the grid's top-up); new_lost: of the new corners of the frame before, those lost into this one (corners on
+    noise, on a plain wall or in the dark, die at their first step)."""
 
+    frames: int = 0
+    starts: int = 0
+    seeded: int = 0
     followed: int = 0
-    lost_flow: int = 0
+    lost_no_flow: int = 0
     lost_round_trip: int = 0
     lost_border: int = 0
     lost_epipolar: int = 0
     new: int = 0
     new_lost: int = 0
-    frames: int = 0
 
     def __add__(self, other: FrameLosses) -> FrameLosses:
         return FrameLosses(*(a + b for a, b in zip(astuple(self), astuple(other))))
+
+
+#: One frame of the history: its key, its tracks' ids [k] and positions [k,2], what became of the tracks followed
+#: into it
+_Frame = tuple[float, np.ndarray, np.ndarray, FrameLosses]
 
 
 @dataclass(frozen=True)
@@ -72,7 +80,8 @@ class TrackerOptions:
     threshold at the start (it then follows the scene: up when a frame gives many times the corners it needs, down to
     ``FAST_MIN`` when it gives too few, as plain walls do); window: Lucas-Kanade's window side, px; levels: its
     pyramid levels above the frame; fb_threshold_px: the most a track's backward flow may miss its start; ransac_px:
-    the epipolar distance (px) of a pair's inliers; history: frames whose tracks are kept for ``tracks``."""
+    the epipolar distance (px) of a pair's inliers; history: frames whose tracks are kept for ``tracks`` (at least:
+    ``FrameTracker.hold`` keeps more)."""
 
     max_features: int = 500
     grid: tuple[int, int] = (8, 5)
@@ -100,13 +109,13 @@ class FrameTracker:
 
     def __init__(self, options: TrackerOptions | None = None) -> None:
         self.options = options or TrackerOptions()
+        self._history_len = self.options.history
         self._fast = cv2.FastFeatureDetector_create(threshold=self.options.fast_threshold, nonmaxSuppression=True)
         self.reset()
 
     def reset(self) -> None:
         self._fast.setThreshold(self.options.fast_threshold)
-        # (key, track ids, positions [k,2], what became of the tracks followed into it) per frame
-        self._frames: deque[tuple[float, np.ndarray, np.ndarray, FrameLosses]] = deque(maxlen=self.options.history)
+        self._frames: deque[_Frame] = deque(maxlen=self._history_len)
         self._gray: np.ndarray | None = None
         self._ids = np.zeros(0, np.int64)
         self._pts = np.zeros((0, 2), np.float32)
@@ -129,10 +138,11 @@ class FrameTracker:
     def add(self, key: float, gray: np.ndarray) -> None:
         if self._gray is not None and self._gray.shape != gray.shape:
             raise ValueError(f"frame of {gray.shape} after frames of {self._gray.shape}: reset the tracker first")
-        losses = self._follow(gray) if len(self._pts) else FrameLosses()
+        losses = self._follow(gray) if len(self._pts) else FrameLosses(starts=1)
         born = len(self._ids)
         self._top_up(gray)
-        losses = replace(losses, new=len(self._ids) - born, frames=1)
+        added = len(self._ids) - born
+        losses = replace(losses, frames=1, **({"seeded": added} if losses.starts else {"new": added}))
         self._gray = gray
         self._frames.append((float(key), self._ids.copy(), self._pts.astype(np.float64), losses))
 
@@ -159,10 +169,10 @@ class FrameTracker:
             if inl is not None:
                 ok[np.flatnonzero(ok)[inl.ravel() == 0]] = False
         newest = self._frames[-1][3].new if self._frames else 0  # the last ``newest`` ids are the frame's new corners
-        losses = FrameLosses(followed=len(ok), lost_flow=int((~flow).sum()),
+        losses = FrameLosses(followed=len(ok), lost_no_flow=int((~flow).sum()),
                              lost_round_trip=int((flow & ~round_trip).sum()),
                              lost_border=int(round_trip.sum()) - inside, lost_epipolar=inside - int(ok.sum()),
-                             new_lost=int((~ok[len(ok) - newest:]).sum()) if newest else 0)
+                             new_lost=int((~ok[len(ok) - newest:]).sum()))
         self._ids, self._pts = self._ids[ok], nxt[ok].astype(np.float32)
         return losses
 
@@ -237,7 +247,14 @@ class FrameTracker:
         KeyError for a frame not in the history."""
         return sum((f[3] for f in self._history(keys)), FrameLosses())
 
-    def _history(self, keys: Sequence[float]) -> list[tuple[float, np.ndarray, np.ndarray, FrameLosses]]:
+    def hold(self, n: int) -> None:
+        """Keep at least ``n`` frames in the history from now on (a clip of n frames must be there whole: the
+        node's clips run to 64 frames, past ``TrackerOptions.history``)."""
+        if n > self._history_len:
+            self._history_len = n
+            self._frames = deque(self._frames, maxlen=n)
+
+    def _history(self, keys: Sequence[float]) -> list[_Frame]:
         index = {f[0]: i for i, f in enumerate(self._frames)}
         return [self._frames[index[float(k)]] for k in keys]
 
