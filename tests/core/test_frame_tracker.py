@@ -13,7 +13,8 @@ import pytest
 from vi3_core import so3
 from vi3_core.backbones.classical import ClassicalBackbone
 from vi3_core.backbones.classical.bench import bench_tracker
-from vi3_core.backbones.classical.poses import OK, estimate_poses
+from vi3_core.backbones.classical.bundle import bundle_adjust
+from vi3_core.backbones.classical.poses import OK, estimate_poses, triangulate
 from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks, cell_of
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
@@ -182,6 +183,20 @@ def test_a_clip_longer_than_the_history_is_held_whole(room):
         backbone.tracker.add(float(i), clip.images[i % 8] if clip.images.ndim == 3 else
                              cv2.cvtColor(clip.images[i % 8], cv2.COLOR_RGB2GRAY))
     assert backbone.tracker.keys() == [float(i) for i in range(1, 9)]
+
+
+def test_a_camera_no_point_constrains_is_left_where_it_was():
+    """Bundle adjustment of a clip one of whose frames sees none of the points left (a long clip's frame whose points
+    were all cleaned out): that camera stays put and the others are refined (the reduced system was singular)."""
+    tracks, K, R_wc, t_wc = _turning_tracks()
+    uv, visible = tracks.uv.copy(), tracks.visible.copy()
+    uv[:, -1], visible[:, -1] = np.nan, False
+    points = triangulate(uv, visible, R_wc, t_wc, K)
+    t_start = t_wc + np.random.default_rng(1).normal(scale=0.002, size=t_wc.shape) * (np.arange(8) > 0)[:, None]
+    R_out, t_out, _ = bundle_adjust(R_wc, t_start, points, uv, visible, K)
+    np.testing.assert_allclose(t_out[-1], t_start[-1], atol=1e-12)
+    np.testing.assert_allclose(R_out[-1], R_wc[-1], atol=1e-12)
+    assert np.abs(t_out[1:-1] - t_wc[1:-1]).max() < np.abs(t_start[1:-1] - t_wc[1:-1]).max()
 
 
 def _turning_tracks(n: int = 8, deg_per_frame: float = 9.0, seed: int = 0) -> tuple[Tracks, np.ndarray, np.ndarray,

@@ -200,7 +200,9 @@ def _pair_weights(n: int) -> np.ndarray:
     i, j = _pair_indices(n)
     D = np.zeros((len(i), n))
     D[np.arange(len(i)), i], D[np.arange(len(i)), j] = -1.0, 1.0
-    W = np.linalg.pinv(D @ D.T)
+    # D D^T's nonzero eigenvalues are all n; its zero ones come out as rounding (up to 1e-13), which the default cutoff
+    # (1e-15 of the largest) inverted into weights of 1e13 for clips of 19 frames and more
+    W = np.linalg.pinv(D @ D.T, rcond=1e-10)
     W.flags.writeable = False
     return W
 
@@ -288,7 +290,8 @@ class RigCalibrator:
         info = np.einsum("pak,pq,qal->kl", H, W, H)
         sol = np.linalg.lstsq(info, np.einsum("pak,pq,qa->k", H, W, r), rcond=None)[0]
         res = r - H @ sol
-        noise = math.sqrt(float(np.einsum("pa,pq,qa->", res, W, res)) / dof)  # rad per frame and axis
+        # rad per frame and axis (W is positive semi-definite: a form a rounding error below 0 is 0)
+        noise = math.sqrt(max(float(np.einsum("pa,pq,qa->", res, W, res)), 0.0) / dof)
         if noise > self.max_noise:
             return (f"rotations not explained by the rig ({math.degrees(noise):.2f} deg per frame after the fit): a "
                     "backbone failure")

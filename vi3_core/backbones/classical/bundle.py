@@ -78,7 +78,9 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
                                 Jl[:, 1:, 1, None, :])  # [m,n-1,6,3]
             bc = torch.einsum("mnri,mnr->ni", WJc, r)[1:]
             bl = torch.einsum("mnri,mnr->mi", WJl, r)
-        Hcc_d = Hcc + lam * eye6 * Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
+        diag = Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
+        # a camera no point constrains any more (a long clip's frame whose points were all cleaned out) stays put
+        Hcc_d = Hcc + lam * eye6 * diag + eye6 * (diag == 0)
         Hll_inv = _inv3(Hll + lam * eye3 * Hll.diagonal(dim1=1, dim2=2)[:, :, None] + 1e-9 * eye3)
         Y = torch.bmm(Hcl.reshape(len(Hcl), -1, 3), Hll_inv).view(Hcl.shape)  # Hcl Hll^-1 [m,n-1,6,3]
         # Schur complement S = Hcc - sum_m Y_m Hcl_m^T as one matrix product over (point, point coordinate).
