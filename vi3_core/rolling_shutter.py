@@ -18,9 +18,11 @@ import numpy as np
 MAP_STEP_PX = 8  # px: the pixel map is computed on a grid this coarse and interpolated (it is nearly linear)
 
 
-def row_times(stamp_s: float, height: int, readout_s: float) -> np.ndarray:
-    """[H] s: when each row of the frame stamped ``stamp_s`` (its middle row) was exposed (mid-exposure)."""
-    return stamp_s + readout_s * ((np.arange(height) + 0.5) / height - 0.5)
+def row_times(stamp_s: float, height: int, readout_s: float, rows: np.ndarray | None = None) -> np.ndarray:
+    """[R] s: when the rows ``rows`` [R] (pixel rows, fractional where between rows; None: every row, R = height) of
+    the frame stamped ``stamp_s`` (its middle row) were exposed (mid-exposure)."""
+    rows = np.arange(height) if rows is None else rows
+    return stamp_s + readout_s * ((rows + 0.5) / height - 0.5)
 
 
 def derolled(images: np.ndarray, K: np.ndarray, rates_c: np.ndarray, readout_s: float, *,
@@ -45,7 +47,7 @@ def derolled(images: np.ndarray, K: np.ndarray, rates_c: np.ndarray, readout_s: 
     v = np.arange(hc) * s + (s - 1) / 2 - s
     x = ((u - K[0, 2]) / K[0, 0])[None, :]
     y = ((v - K[1, 2]) / K[1, 1])[:, None]
-    tau = (readout_s * ((v + 0.5) / H - 0.5))[:, None]
+    tau = row_times(0.0, H, readout_s, v)[:, None]
     out = np.empty_like(images)
     for i, (wx, wy, wz) in enumerate(np.asarray(rates_c, np.float64)):
         zs = 1.0 - tau * (wx * y - wy * x)
