@@ -283,8 +283,9 @@ def main(args: list[str] | None = None) -> int:
             interrupts.hold()
             if node is not None:
                 node.destroy_node()
-            if rclpy.ok():
-                rclpy.shutdown()
+            # rclpy's own handler may shut the context down between a check and a shutdown here (a SIGTERM just
+            # after start): "already shut down" raised RCLError at exit; try_shutdown checks under the context's lock
+            rclpy.try_shutdown()
         # Leave now: nothing is left to publish or write, a clip may still be in the backbone (which cannot be
         # interrupted; its outputs are discarded), and the interpreter's teardown of torch alone took over a second
         # on a loaded machine.
