@@ -200,7 +200,7 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
     ``rig``'s self-calibration (key ``rig``; ``rig_note``: why the clip did not add to it or take all of it); the
     outputs of the clip that could not be built (``ClipPublisher.take_errors``: key ``output_errors``, level ERROR);
     ``front_end``: where the backbone's front end lost the tracks into the frames this clip tracked (the ``classical``
-    backbone's ``tracks.FrameLosses`` as a dict; key ``front_end``)."""
+    backbone's ``front_end.FrameLosses`` as a dict; key ``front_end``)."""
     level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
     if drops and level is Level.OK:
         level = Level.WARN
@@ -235,7 +235,8 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
         values["front_end"] = (f"{f['frames']} frames ({f['starts']} started afresh), {f['followed']} tracks followed; "
                                f"lost: {f['lost_no_flow']} no flow, {f['lost_round_trip']} round trip, "
                                f"{f['lost_border']} border, {f['lost_epipolar']} epipolar; {f['new']} new corners; "
-                               f"{f['new_lost']} new corners lost at their first step")
+                               f"{f['new_lost']} new corners lost at their first step; {f['ended']} tracks ended, "
+                               f"seen in {f['ended_frames']} frames in all")
     if result is not None and kind != "init":
         values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})

@@ -87,6 +87,7 @@ def test_vi3_eval_scores_the_scale_links_against_the_ground_truth(cache_dir, cap
     front = report["front_end"]
     assert front["frames"] == 22 and front["starts"] == 1 and front["followed_per_frame"] > 100
     assert 0.0 < sum(front["lost"].values()) < 0.5 and 0.0 <= front["new_lost"] <= 1.0
+    assert 1.0 <= front["track_length"] <= 22 and 0.0 <= front["long_tracks"] <= 1.0
     assert vi3_main(common) == 0
     out = capsys.readouterr().out
     assert "scale links against the ground truth: 2 scored" in out and "front end (22 frames, 1 started afresh):" in out

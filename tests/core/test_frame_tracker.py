@@ -16,6 +16,7 @@ from vi3_core.backbones.classical.bench import bench_tracker
 from vi3_core.backbones.classical.bundle import bundle_adjust
 from vi3_core.backbones.classical.poses import OK, estimate_poses, triangulate
 from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks, cell_of
+from vi3_core.backbones.front_end import LONG_TRACK
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import gt_camera_poses, make_clip
@@ -138,7 +139,7 @@ def test_the_tracker_says_where_its_tracks_were_lost(stream):
             lost = f.lost_no_flow + f.lost_round_trip + f.lost_border + f.lost_epipolar
             assert f.frames == 1 and f.starts == (i == 0) and f.followed == (live[i - 1] if i else 0)
             assert live[i] == f.followed - lost + f.new + f.seeded and (f.seeded > 0) == (i == 0) and f.new_lost <= (
-                per_frame[i - 1].new if i else 0)
+                per_frame[i - 1].new if i else 0) and f.ended == lost
         total = tracker.losses([float(i) for i in range(1, 8)])
         assert total.frames == 7 and total.followed == sum(f.followed for f in per_frame[1:])
         first_step[dark], round_trip[dark] = total.new_lost / total.new, total.lost_round_trip / total.followed
@@ -154,6 +155,27 @@ def test_the_tracker_says_where_its_tracks_were_lost(stream):
     assert f.lost_round_trip + f.lost_no_flow > 0.3 * f.followed and f.lost_epipolar < 0.1 * f.followed, f
     with pytest.raises(KeyError):
         tracker.losses([2.0])
+
+
+def test_the_lengths_of_the_tracks_that_ended_are_those_their_history_shows(stream):
+    """``FrameLosses.ended*``: each track lost counts the frames it was seen in, as read back from the history (a
+    track is seen in consecutive frames); the tracks still live at the end are not counted."""
+    _, gray, _ = stream
+    tracker = FrameTracker()
+    keys = [float(i) for i in range(len(gray))]
+    for k, g in zip(keys, gray):
+        tracker.add(k, g)
+    tracks = tracker.tracks(keys)
+    seen = tracks.visible.sum(1)
+    ended = ~tracks.visible[:, -1]
+    total = tracker.losses(keys)
+    assert total.ended == ended.sum() > 100 and total.ended_frames == seen[ended].sum()
+    assert total.ended_long == (seen[ended] >= LONG_TRACK).sum() > 0, (total, np.bincount(seen[ended]))
+    tracker.reset()  # lengths count from the reset
+    for k, g in zip(keys[:3], gray[:3]):
+        tracker.add(k, g)
+    visible = tracker.tracks(keys[:3]).visible
+    assert tracker.losses(keys[:3]).ended_frames == visible[~visible[:, -1]].sum() > 0
 
 
 def test_reset_forgets_and_a_frame_of_another_size_is_refused(stream):

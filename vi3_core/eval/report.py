@@ -19,7 +19,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from vi3_core.backbones.classical.tracks import FrameLosses
+from vi3_core.backbones import front_end
 from vi3_core.eval import coverage
 from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
 from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
@@ -95,23 +95,6 @@ def status_note(evals: Sequence[ClipEval]) -> str:
             f"reason ({n}): {reason}")
 
 
-def front_end_losses(evals: Sequence[ClipEval]) -> dict | None:
-    """Where the front end lost its tracks over the clips whose backbone says (the ``classical`` backbone's
-    ``front_end``, ``tracks.FrameLosses``, summed): frames tracked and how many of them started afresh (``starts``:
-    an independent run starts every clip), then per frame that followed tracks: tracks followed, the share of them
-    each check dropped (``lost``: no_flow, round_trip, border, epipolar), new corners, and the share of those lost at
-    their first step (``new_lost``); None where no clip says."""
-    rows = [e.backbone_diagnostics.get("front_end") for e in evals]
-    total = sum((FrameLosses(**r) for r in rows if r), FrameLosses())
-    if not total.frames:
-        return None
-    following, followed = max(total.frames - total.starts, 1), max(total.followed, 1)
-    return {"frames": total.frames, "starts": total.starts, "followed_per_frame": total.followed / following,
-            "lost": {name: getattr(total, f"lost_{name}") / followed
-                     for name in ("no_flow", "round_trip", "border", "epipolar")},
-            "new_per_frame": total.new / following, "new_lost": total.new_lost / max(total.new, 1)}
-
-
 def _front_end_line(losses: dict | None) -> str:
     if not losses:
         return ""
@@ -119,7 +102,8 @@ def _front_end_line(losses: dict | None) -> str:
     return (f"front end ({losses['frames']} frames, {losses['starts']} started afresh): "
             f"{losses['followed_per_frame']:.0f} tracks followed per frame, lost into the next by the checks: {lost}; "
             f"{losses['new_per_frame']:.0f} new corners per frame, {100 * losses['new_lost']:.0f} % of them lost at "
-            "their first step")
+            f"their first step; the tracks that ended were seen in {losses['track_length']:.1f} frames on average, "
+            f"{100 * losses['long_tracks']:.1f} % of them in {front_end.LONG_TRACK} or more")
 
 
 def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3", backbone: str = "",
@@ -128,7 +112,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
     medians of every column: base, init, cond/ttr), ``base`` and ``vi3`` (its base and ``mode`` columns),
     ``base_all`` (the base over every clip), ``init`` (median init errors over ok clips), ``claimed_outliers`` and
     ``sigma_calibration`` (``vi3_core.eval.claims``), ``status_counts``, ``note`` (why no clip is ok, "" otherwise),
-    ``hint`` (``gyro_check_hint``), ``front_end`` (``front_end_losses``) and a per-clip list."""
+    ``hint`` (``gyro_check_hint``), ``front_end`` (``front_end.run_summary``) and a per-clip list."""
     ok = [e for e in evals if e.ok]
     columns = expected_columns(mode)
     paired = [e for e in evals if all(c in e.columns for c in columns)]
@@ -148,7 +132,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
         "status_counts": {s.value: counts.get(s.value, 0) for s in InitStatus},
         "note": status_note(evals),
         "hint": gyro_check_hint(sum(e.reason.startswith(GYRO_FAILURE) for e in evals), len(evals)),
-        "front_end": front_end_losses(evals),
+        "front_end": front_end.run_summary(e.backbone_diagnostics.get("front_end") for e in evals),
         "clips": [{"frames": [int(e.indices[0]), int(e.indices[-1])], "t0": float(e.stamps[0]), "status": e.status,
                    "reason": e.reason, "mode": e.mode,
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,

@@ -43,7 +43,8 @@ from vi3_core.backbones._hub import check_clip, scaled_K
 from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
-from vi3_core.backbones.classical.tracks import FrameLosses, FrameTracker, TrackerOptions, Tracks
+from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks
+from vi3_core.backbones.front_end import FrameLosses
 from vi3_core.camera import backproject
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
@@ -184,7 +185,7 @@ class ClassicalBackbone(Backbone):
     def diagnostics(self) -> dict:
         """The last clip's status and reason, its SfM counts and errors (tracks, points, reproj_px_median, ...),
         the scale divisor, the stage timings tracks_s, sfm_s, mvs_s (s), mvs_workers (plane-sweep threads) and
-        front_end: where the tracks into the frames this clip tracked were lost (``tracks.FrameLosses`` as a dict);
+        front_end: where the tracks into the frames this clip tracked were lost (``front_end.FrameLosses`` as a dict);
         empty before any clip."""
         if self.last_inputs is None:
             return {}

@@ -17,10 +17,12 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import astuple, dataclass, replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+
+from vi3_core.backbones.front_end import LONG_TRACK, FrameLosses
 
 FAST_MIN, FAST_MAX = 5, 60  # the range the FAST threshold follows the scene in
 MASK_PX = 4  # side of the squares the detection mask is drawn on
@@ -41,31 +43,6 @@ class Tracks:
 
     def __len__(self) -> int:
         return len(self.uv)
-
-
-@dataclass(frozen=True)
-class FrameLosses:
-    """What became of the tracks followed into a frame (summed over frames by ``+``): frames: how many frames this
-    sums; starts: of them, frames with no track to follow (the first after a reset), whose corners are ``seeded``;
-    followed: live tracks of the frame before; lost_no_flow: Lucas-Kanade found no flow (either way);
-    lost_round_trip: the backward flow missed the start by ``fb_threshold_px`` or more; lost_border: the flow left the
-    frame; lost_epipolar: outliers of the pair's epipolar geometry; new: corners detected in a frame that followed
-    tracks (the grid's top-up); new_lost: of the new corners of the frame before, those lost into this one (corners on
-    noise, on a plain wall or in the dark, die at their first step)."""
-
-    frames: int = 0
-    starts: int = 0
-    seeded: int = 0
-    followed: int = 0
-    lost_no_flow: int = 0
-    lost_round_trip: int = 0
-    lost_border: int = 0
-    lost_epipolar: int = 0
-    new: int = 0
-    new_lost: int = 0
-
-    def __add__(self, other: FrameLosses) -> FrameLosses:
-        return FrameLosses(*(a + b for a, b in zip(astuple(self), astuple(other))))
 
 
 #: One frame of the history: its key, its tracks' ids [k] and positions [k,2], what became of the tracks followed
@@ -119,6 +96,8 @@ class FrameTracker:
         self._gray: np.ndarray | None = None
         self._ids = np.zeros(0, np.int64)
         self._pts = np.zeros((0, 2), np.float32)
+        self._born = np.zeros(0, np.int64)  # [k] the frame (counted from the reset) each live track was first seen in
+        self._count = 0  # frames added since the reset
         self._next_id = 0
         self._square_cells: np.ndarray | None = None  # [h,w] the grid cell of each square of the detection mask
 
@@ -144,6 +123,7 @@ class FrameTracker:
         added = len(self._ids) - born
         losses = replace(losses, frames=1, **({"seeded": added} if losses.starts else {"new": added}))
         self._gray = gray
+        self._count += 1
         self._frames.append((float(key), self._ids.copy(), self._pts.astype(np.float64), losses))
 
     def _follow(self, gray: np.ndarray) -> FrameLosses:
@@ -169,11 +149,13 @@ class FrameTracker:
             if inl is not None:
                 ok[np.flatnonzero(ok)[inl.ravel() == 0]] = False
         newest = self._frames[-1][3].new if self._frames else 0  # the last ``newest`` ids are the frame's new corners
+        seen = self._count - self._born[~ok]  # frames each lost track was seen in: from its first to the frame before
         losses = FrameLosses(followed=len(ok), lost_no_flow=int((~flow).sum()),
                              lost_round_trip=int((flow & ~round_trip).sum()),
                              lost_border=int(round_trip.sum()) - inside, lost_epipolar=inside - int(ok.sum()),
-                             new_lost=int((~ok[len(ok) - newest:]).sum()))
-        self._ids, self._pts = self._ids[ok], nxt[ok].astype(np.float32)
+                             new_lost=int((~ok[len(ok) - newest:]).sum()), ended=len(seen),
+                             ended_frames=int(seen.sum()), ended_long=int((seen >= LONG_TRACK).sum()))
+        self._ids, self._pts, self._born = self._ids[ok], nxt[ok].astype(np.float32), self._born[ok]
         return losses
 
     def _top_up(self, gray: np.ndarray) -> None:
@@ -212,6 +194,7 @@ class FrameTracker:
         if len(take):
             self._pts = np.concatenate([self._pts, xy[take]])
             self._ids = np.concatenate([self._ids, self._next_id + np.arange(len(take))])
+            self._born = np.concatenate([self._born, np.full(len(take), self._count)])
             self._next_id += len(take)
 
     def _free(self, quota: np.ndarray, H: int, W: int) -> np.ndarray:
