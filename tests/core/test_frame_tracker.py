@@ -5,6 +5,7 @@ forward-backward check, the warm start and the incremental registration, and ``v
 from __future__ import annotations
 
 import argparse
+from dataclasses import asdict
 
 import cv2
 import numpy as np
@@ -16,7 +17,7 @@ from vi3_core.backbones.classical.bench import bench_tracker
 from vi3_core.backbones.classical.bundle import bundle_adjust
 from vi3_core.backbones.classical.poses import OK, estimate_poses, triangulate
 from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks, cell_of
-from vi3_core.backbones.front_end import LONG_TRACK
+from vi3_core.backbones.front_end import LONG_TRACK, FrameLosses, run_summary
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import gt_camera_poses, make_clip
@@ -176,6 +177,20 @@ def test_the_lengths_of_the_tracks_that_ended_are_those_their_history_shows(stre
         tracker.add(k, g)
     visible = tracker.tracks(keys[:3]).visible
     assert tracker.losses(keys[:3]).ended_frames == visible[~visible[:, -1]].sum() > 0
+
+
+def test_the_runs_rates_sum_the_clips_and_say_none_where_nothing_was_measured():
+    """``front_end.run_summary``: clips without a front end are left out, rates are per frame that followed tracks,
+    and a run in which no track ended has no track length (not 0 frames)."""
+    assert run_summary([None, {}]) is None
+    start = asdict(FrameLosses(frames=1, starts=1, seeded=500))
+    assert run_summary([start])["track_length"] is None and run_summary([start])["long_tracks"] is None
+    follow = asdict(FrameLosses(frames=2, followed=1000, lost_round_trip=20, lost_epipolar=10, new=30, new_lost=6,
+                                ended=30, ended_frames=90, ended_long=3))
+    run = run_summary([start, None, follow])
+    assert run["frames"] == 3 and run["starts"] == 1 and run["followed_per_frame"] == 500.0
+    assert run["lost"]["round_trip"] == 0.02 and run["new_lost"] == 0.2
+    assert run["track_length"] == 3.0 and run["long_tracks"] == 0.1
 
 
 def test_reset_forgets_and_a_frame_of_another_size_is_refused(stream):

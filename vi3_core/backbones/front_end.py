@@ -46,13 +46,15 @@ def run_summary(rows: Iterable[dict | None]) -> dict | None:
     per frame that followed tracks: tracks followed, the share of them each check dropped (``lost``: no_flow,
     round_trip, border, epipolar), new corners, and the share of those lost at their first step (``new_lost``); of
     the tracks that ended, the mean of the frames each was seen in (``track_length``) and the share seen in
-    ``LONG_TRACK`` frames or more (``long_tracks``); None where no clip has a front end."""
+    ``LONG_TRACK`` frames or more (``long_tracks``; both None where no track ended); None where no clip has a front
+    end."""
     total = sum((FrameLosses(**r) for r in rows if r), FrameLosses())
     if not total.frames:
         return None
-    following, followed, ended = max(total.frames - total.starts, 1), max(total.followed, 1), max(total.ended, 1)
+    following, followed, ended = max(total.frames - total.starts, 1), max(total.followed, 1), total.ended
     return {"frames": total.frames, "starts": total.starts, "followed_per_frame": total.followed / following,
             "lost": {name: getattr(total, f"lost_{name}") / followed
                      for name in ("no_flow", "round_trip", "border", "epipolar")},
             "new_per_frame": total.new / following, "new_lost": total.new_lost / max(total.new, 1),
-            "track_length": total.ended_frames / ended, "long_tracks": total.ended_long / ended}
+            "track_length": total.ended_frames / ended if ended else None,
+            "long_tracks": total.ended_long / ended if ended else None}

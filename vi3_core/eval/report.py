@@ -99,11 +99,13 @@ def _front_end_line(losses: dict | None) -> str:
     if not losses:
         return ""
     lost = ", ".join(f"{100 * v:.1f} % {k.replace('_', ' ')}" for k, v in losses["lost"].items())
+    lengths = "" if losses["track_length"] is None else (
+        f"; the tracks that ended were seen in {losses['track_length']:.1f} frames on average, "
+        f"{100 * losses['long_tracks']:.1f} % of them in {front_end.LONG_TRACK} or more")
     return (f"front end ({losses['frames']} frames, {losses['starts']} started afresh): "
             f"{losses['followed_per_frame']:.0f} tracks followed per frame, lost into the next by the checks: {lost}; "
             f"{losses['new_per_frame']:.0f} new corners per frame, {100 * losses['new_lost']:.0f} % of them lost at "
-            f"their first step; the tracks that ended were seen in {losses['track_length']:.1f} frames on average, "
-            f"{100 * losses['long_tracks']:.1f} % of them in {front_end.LONG_TRACK} or more")
+            f"their first step{lengths}")
 
 
 def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3", backbone: str = "",

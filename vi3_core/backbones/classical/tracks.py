@@ -118,9 +118,9 @@ class FrameTracker:
         if self._gray is not None and self._gray.shape != gray.shape:
             raise ValueError(f"frame of {gray.shape} after frames of {self._gray.shape}: reset the tracker first")
         losses = self._follow(gray) if len(self._pts) else FrameLosses(starts=1)
-        born = len(self._ids)
+        before = len(self._ids)
         self._top_up(gray)
-        added = len(self._ids) - born
+        added = len(self._ids) - before
         losses = replace(losses, frames=1, **({"seeded": added} if losses.starts else {"new": added}))
         self._gray = gray
         self._count += 1
