@@ -13,6 +13,7 @@ from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.eval import report, runner
 from vi3_core.init import InitOptions
+from vi3_core.online import StreamOptions
 from vi3_ros import cli
 
 SECONDS = 2.0  # 41 frames: room for the paper's start / middle / end clips of 8 frames at stride 2
@@ -26,7 +27,7 @@ def sequence_dir(cache_dir):
 @pytest.fixture(scope="module")
 def evals(sequence_dir):
     # the gate open (as OPEN_GATE in test_replay): these check the metrics of claimed clips, not which are claimed
-    options = runner.EvalOptions(mode="init", max_clips=2, progress=False, init_options=InitOptions(max_scale_sigma=10))
+    options = runner.EvalOptions(max_clips=2, progress=False, init_options=InitOptions(max_scale_sigma=10))
     return runner.evaluate_sequence(read_asl(sequence_dir), make_backbone("classical"), options=options)
 
 
@@ -84,8 +85,8 @@ def test_oracle_init_and_short_ttr_report_three_columns(sequence_dir) -> None:
 
     seq = read_asl(sequence_dir)
     idx = runner.clip_indices(len(seq), options=runner.EvalOptions())[1]
-    options = runner.EvalOptions(mode="ttr", init_source="gt", anchor_options=AnchorOptions(ttr_steps=2),
-                                 progress=False)
+    options = runner.EvalOptions(stream_options=StreamOptions(online=False, mode="ttr", init_source="gt"),
+                                 anchor_options=AnchorOptions(ttr_steps=2), progress=False)
     e = runner.evaluate_clip(make_clip(seq, idx), options.stream(make_backbone("classical"), online=False), indices=idx)
     assert e.ok and set(e.columns) == {"base", "init", "ttr"} and e.fast is not None
     assert set(e.trajectories()) == {"gt", "base", "imu", "init", "vi3"}

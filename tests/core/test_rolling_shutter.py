@@ -10,8 +10,7 @@ import pytest
 from vi3_core import so3
 from vi3_core.backbones.classical import ClassicalBackbone
 from vi3_core.dataset.generate import REALSENSE_CAM
-from vi3_core.eval.runner import EvalOptions
-from vi3_core.online.stream import StreamOptions
+from vi3_core.online.stream import StreamEstimator, StreamOptions
 from vi3_core.render.raycast import Renderer
 from vi3_core.render.scene import make_scene
 from vi3_core.rolling_shutter import derolled, row_times
@@ -92,7 +91,7 @@ def test_the_stream_derolls_its_clips_by_the_gyro_and_the_setting_reaches_it(tur
                      g_W=np.array([0.0, 0.0, -9.81]), depth=depth)
     clip = Clip(stamps=stamps, images=np.stack([shutter, still]), K=REALSENSE_CAM.K, T_BC=T_BC,
                 imu=imu.window(-0.02, 0.07), gt=gt)
-    stream = EvalOptions(rolling_shutter_readout=READOUT).stream(ClassicalBackbone(), online=True)
+    stream = StreamEstimator(ClassicalBackbone(), options=StreamOptions(rolling_shutter_readout=READOUT))
     assert stream.options.rolling_shutter_readout == READOUT
     rates = np.stack([w, 1.2 * w])
     turned = stream._derolled(clip, 0)
@@ -104,7 +103,7 @@ def test_the_stream_derolls_its_clips_by_the_gyro_and_the_setting_reaches_it(tur
     later = stream._derolled(clip, 1)
     assert np.array_equal(later.images[0], shutter) and np.array_equal(later.gt.depth[0], depth[0])
     assert np.abs(later.images[1].astype(int) - expected[1]).max() <= 1
-    assert EvalOptions().stream(ClassicalBackbone(), online=True)._derolled(clip, 0) is clip
+    assert StreamEstimator(ClassicalBackbone())._derolled(clip, 0) is clip
 
 
 def test_a_frame_two_clips_share_is_turned_once(turning_frames):
@@ -120,11 +119,12 @@ def test_a_frame_two_clips_share_is_turned_once(turning_frames):
                  imu=imu.window(-0.005, 0.055))
     second = Clip(stamps=np.array([0.05, 0.1]), images=np.stack([shutter, still]), K=REALSENSE_CAM.K, T_BC=T_BC,
                   imu=imu.window(0.045, 0.105))
-    stream = EvalOptions(rolling_shutter_readout=READOUT).stream(ClassicalBackbone(), online=True)
+    stream = StreamEstimator(ClassicalBackbone(), options=StreamOptions(rolling_shutter_readout=READOUT))
     a = stream._derolled(first, 0)
     b = stream._derolled(second, 0)
     assert np.array_equal(b.images[0], a.images[1])
-    alone = EvalOptions(rolling_shutter_readout=READOUT).stream(ClassicalBackbone(), online=True)._derolled(second, 0)
+    alone = StreamEstimator(ClassicalBackbone(), options=StreamOptions(rolling_shutter_readout=READOUT))
+    alone = alone._derolled(second, 0)
     assert not np.array_equal(alone.images[0], a.images[1])  # its own IMU turns it otherwise
     stream.reset("time went back")
     assert np.array_equal(stream._derolled(second, 0).images[0], alone.images[0])

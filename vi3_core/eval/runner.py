@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from vi3_core.anchor import MODES, AnchorOptions
+from vi3_core.anchor import AnchorOptions
 from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.sequence import Sequence, gt_camera_poses, make_clip, sample_clips
 from vi3_core.errors import DataError, Vi3Error
@@ -33,7 +33,6 @@ from vi3_core.init import InitOptions
 from vi3_core.init.oracle import gt_init_state
 from vi3_core.online import OnlineDecision, OnlineOptions, StreamEstimator, StreamOptions
 from vi3_core.online.calibration import CalibrationOptions, RigEstimate
-from vi3_core.online.stream import INIT_SOURCES
 from vi3_core.types import CLIP_LENGTH, CLIP_STRIDE, Clip, Geometry
 
 CLIP_SAMPLING = ("paper", "sliding")
@@ -52,19 +51,18 @@ ABLATIONS: dict[str, dict] = {
 class EvalOptions:
     """Options of ``evaluate_sequence`` / ``evaluate_online``.
 
-    mode: anchoring mode of the VI3 column ("init" | "cond" | "ttr"); with "cond"/"ttr" the fast init result
-        (which ``anchor`` reports before refining) is evaluated too, as the "init" column.
-    init_source: "vi3" (GT-free, the default) or "gt" (oracle initialisation from ground truth).
+    stream_options: the stream's own options (``StreamOptions``: the anchoring mode of the VI3 column, with
+        "cond"/"ttr" the fast init result, which ``anchor`` reports before refining, evaluated too as the "init"
+        column; init_source "vi3", GT-free, or "gt", the oracle from ground truth; all_depth: every frame's depth
+        predicted, the depth metrics then cover every frame, else the frames the stream reads; the camera's
+        rolling_shutter_readout); its ``online`` is set by ``stream``.
     clips: "paper" (start / middle / end) or "sliding" (every ``hop`` frames); clip_length, stride, hop: frames per
         clip, frame stride and frames between sliding clips (None: back to back), as the node's parameters of the same
         names; max_clips: keep at most this many clips (evenly spread), None for all.
-    anchor_options, init_options, online_options, calibration_options: the stream's settings (None: the defaults);
-    all_depth: every frame's depth predicted (``StreamOptions.all_depth``; the depth metrics then cover every frame),
-        else the frames the stream reads; rolling_shutter_readout: the camera's (``StreamOptions``).
+    anchor_options, init_options, online_options, calibration_options: the stream's settings (None: the defaults).
     """
 
-    mode: str = "init"
-    init_source: str = "vi3"
+    stream_options: StreamOptions = field(default_factory=lambda: StreamOptions(online=False))
     clips: str = "paper"
     clip_length: int = CLIP_LENGTH
     stride: int = CLIP_STRIDE
@@ -74,22 +72,15 @@ class EvalOptions:
     init_options: InitOptions | None = None
     online_options: OnlineOptions | None = None
     calibration_options: CalibrationOptions | None = None
-    all_depth: bool = False
-    rolling_shutter_readout: float = 0.0
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name, value, allowed in (("mode", self.mode, MODES), ("init_source", self.init_source, INIT_SOURCES),
-                                     ("clips", self.clips, CLIP_SAMPLING)):
-            if value not in allowed:
-                raise ValueError(f"EvalOptions.{name} must be one of {', '.join(allowed)}; got {value!r}")
+        if self.clips not in CLIP_SAMPLING:
+            raise ValueError(f"EvalOptions.clips must be one of {', '.join(CLIP_SAMPLING)}; got {self.clips!r}")
 
     def stream(self, backbone: Backbone, *, online: bool) -> StreamEstimator:
         """The stream estimator these options describe (``online``: chained, else every clip on its own)."""
-        return StreamEstimator(backbone, options=StreamOptions(online=online, mode=self.mode,
-                                                               init_source=self.init_source,
-                                                               all_depth=self.all_depth,
-                                                               rolling_shutter_readout=self.rolling_shutter_readout),
+        return StreamEstimator(backbone, options=dataclasses.replace(self.stream_options, online=online),
                                online=self.online_options, init=self.init_options, anchor=self.anchor_options,
                                calibration=self.calibration_options)
 
@@ -247,7 +238,8 @@ def ablation_options(options: EvalOptions) -> dict[str, EvalOptions]:
     """The options of each ``ABLATIONS`` variant: ``options`` in ``init`` mode with the GT-free initialisation and
     the variant's ``InitOptions``, derived from ``options.init_options`` (or the defaults)."""
     base = options.init_options or InitOptions()
-    return {name: dataclasses.replace(options, mode="init", init_source="vi3",
+    stream = dataclasses.replace(options.stream_options, mode="init", init_source="vi3")
+    return {name: dataclasses.replace(options, stream_options=stream,
                                       init_options=dataclasses.replace(base, **overrides))
             for name, overrides in ABLATIONS.items()}
 
@@ -305,7 +297,7 @@ def evaluate_online(seq: Sequence, backbone: Backbone, *, options: EvalOptions |
     in the images); ``on_clip(k)`` is called after the k-th clip is evaluated (progress beside the bar). A clip that
     fails raises ``EvaluationStopped`` with what was computed before it, an interruption ``EvaluationInterrupted``."""
     options = options or EvalOptions()
-    if options.init_source != "vi3":
+    if options.stream_options.init_source != "vi3":
         raise ValueError("chained evaluation is GT-free: use init_source 'vi3' (or the independent evaluation)")
     sampled = check_sequence(seq, options=options, chained=True)
     clips = sampled if clips is None else clips

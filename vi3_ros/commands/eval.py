@@ -25,7 +25,7 @@ import functools
 import os
 import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from vi3_ros import interrupts
@@ -358,12 +358,11 @@ def _prepare(args: argparse.Namespace) -> tuple:
         raise ValueError(f"--reference is the ground truth of one input; {len(args.input)} inputs were given")
     clips = args.clips or ("sliding" if _chained(args) else "paper")
     buf = settings.buffer
+    stream = replace(settings.stream, online=False, init_source=args.init_source, all_depth=settings.outputs.all_depth)
     options = runner.EvalOptions(
-        mode=settings.stream.mode, init_source=args.init_source, clips=clips, clip_length=buf.clip_length,
-        stride=buf.stride, hop=buf.hop, max_clips=args.max_clips, progress=not args.no_progress,
-        anchor_options=settings.anchor, init_options=settings.init, online_options=settings.online,
-        calibration_options=settings.calibration, all_depth=settings.outputs.all_depth,
-        rolling_shutter_readout=settings.stream.rolling_shutter_readout)
+        stream_options=stream, clips=clips, clip_length=buf.clip_length, stride=buf.stride, hop=buf.hop,
+        max_clips=args.max_clips, progress=not args.no_progress, anchor_options=settings.anchor,
+        init_options=settings.init, online_options=settings.online, calibration_options=settings.calibration)
     check_outputs(args)
     runs, problems = [], []
     keep = len(args.input) == 1 and args.ray is None
