@@ -21,6 +21,7 @@ from msg_adapters.image import depth_to_image
 from msg_adapters.pointcloud import point_cloud2
 from msg_adapters.poses import odometry, path, pose_array, tf_message
 from msg_adapters.types import MessageTypes
+from vi3_core.backbones.front_end import FrameLosses
 from vi3_core.camera import backproject
 from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
 from vi3_core.online.calibration import RigEstimate
@@ -231,12 +232,12 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
     if rig_note:
         values["rig_note"] = rig_note
     if front_end:
-        f = front_end
-        values["front_end"] = (f"{f['frames']} frames ({f['starts']} started afresh), {f['followed']} tracks followed; "
-                               f"lost: {f['lost_no_flow']} no flow, {f['lost_round_trip']} round trip, "
-                               f"{f['lost_border']} border, {f['lost_epipolar']} epipolar; {f['new']} new corners; "
-                               f"{f['new_lost']} new corners lost at their first step; {f['ended']} tracks ended, "
-                               f"seen in {f['ended_frames']} frames in all")
+        f = FrameLosses(**front_end)
+        values["front_end"] = (f"{f.frames} frames ({f.starts} started afresh), {f.followed} tracks followed; "
+                               f"lost: {f.lost_no_flow} no flow, {f.lost_round_trip} round trip, "
+                               f"{f.lost_border} border, {f.lost_epipolar} epipolar; {f.new} new corners; "
+                               f"{f.new_lost} new corners lost at their first step; {f.ended} tracks ended, "
+                               f"seen in {f.ended_frames} frames in all")
     if result is not None and kind != "init":
         values.update({f"loss_{k}": f"{float(np.asarray(a).reshape(-1)[-1]):.6g}"
                        for k, a in sorted(result.losses.items()) if np.asarray(a).size})

@@ -186,7 +186,7 @@ def test_the_runs_rates_sum_the_clips_and_say_none_where_nothing_was_measured():
     start = asdict(FrameLosses(frames=1, starts=1, seeded=500))
     assert run_summary([start])["track_length"] is None and run_summary([start])["long_tracks"] is None
     follow = asdict(FrameLosses(frames=2, followed=1000, lost_round_trip=20, lost_epipolar=10, new=30, new_lost=6,
-                                ended=30, ended_frames=90, ended_long=3))
+                                ended_frames=90, ended_long=3))
     run = run_summary([start, None, follow])
     assert run["frames"] == 3 and run["starts"] == 1 and run["followed_per_frame"] == 500.0
     assert run["lost"]["round_trip"] == 0.02 and run["new_lost"] == 0.2

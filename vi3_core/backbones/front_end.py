@@ -18,8 +18,8 @@ class FrameLosses:
     lost_round_trip: the backward flow missed the start by the tracker's threshold or more; lost_border: the flow left
     the frame; lost_epipolar: outliers of the pair's epipolar geometry; new: corners detected in a frame that followed
     tracks (the grid's top-up); new_lost: of the new corners of the frame before, those lost into this one (corners on
-    noise, on a plain wall or in the dark, die at their first step); ended: the tracks lost into this frame (every
-    lost_* above), ended_frames: the frames they had been seen in, summed (their mean length: ended_frames / ended),
+    noise, on a plain wall or in the dark, die at their first step); ended_frames: the frames the tracks lost into
+    this frame (``ended``: every lost_* above) had been seen in, summed (their mean length: ended_frames / ended),
     ended_long: those of them seen in ``LONG_TRACK`` frames or more (the tracks that carry a clip's structure)."""
 
     frames: int = 0
@@ -32,9 +32,13 @@ class FrameLosses:
     lost_epipolar: int = 0
     new: int = 0
     new_lost: int = 0
-    ended: int = 0
     ended_frames: int = 0
     ended_long: int = 0
+
+    @property
+    def ended(self) -> int:
+        """The tracks lost into the frame(s), by any check."""
+        return self.lost_no_flow + self.lost_round_trip + self.lost_border + self.lost_epipolar
 
     def __add__(self, other: FrameLosses) -> FrameLosses:
         return FrameLosses(*(a + b for a, b in zip(astuple(self), astuple(other))))

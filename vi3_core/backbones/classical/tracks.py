@@ -153,8 +153,8 @@ class FrameTracker:
         losses = FrameLosses(followed=len(ok), lost_no_flow=int((~flow).sum()),
                              lost_round_trip=int((flow & ~round_trip).sum()),
                              lost_border=int(round_trip.sum()) - inside, lost_epipolar=inside - int(ok.sum()),
-                             new_lost=int((~ok[len(ok) - newest:]).sum()), ended=len(seen),
-                             ended_frames=int(seen.sum()), ended_long=int((seen >= LONG_TRACK).sum()))
+                             new_lost=int((~ok[len(ok) - newest:]).sum()), ended_frames=int(seen.sum()),
+                             ended_long=int((seen >= LONG_TRACK).sum()))
         self._ids, self._pts, self._born = self._ids[ok], nxt[ok].astype(np.float32), self._born[ok]
         return losses
 
