@@ -30,15 +30,16 @@ def _scaled(T: np.ndarray, s: float) -> np.ndarray:
 
 
 def make_clip_eval(seed: int, *, ok: bool = True, base_scale: float = 0.4, vi3_scale: float = 1.05,
-                   sigma: float = float("nan")) -> ClipEval:
-    """A clip whose base is ``base_scale`` and VI3 output ``vi3_scale`` times the truth; ``sigma``: the init's
-    relative scale sigma."""
+                   sigma: float = float("nan"), shrink: float = 1.0, with_depth: bool = True) -> ClipEval:
+    """A clip whose base is ``base_scale`` and VI3 output ``vi3_scale`` times the truth, their positions ``shrink``
+    times that (a trajectory at another scale than the depth); ``sigma``: the init's relative scale sigma;
+    ``with_depth``: scored against depth ground truth."""
     rng = np.random.default_rng(seed)
     p = np.column_stack([np.linspace(0, 1.0, N), 0.2 * np.sin(np.linspace(0, 2, N)), np.zeros(N)])
     T_gt = so3.relative_to_first(so3.make_T(so3.exp(rng.normal(scale=0.05, size=(N, 3))), p))
     depth_gt = rng.uniform(1.0, 5.0, size=(N, H, W))
-    base = _geometry(_scaled(T_gt, base_scale), base_scale * depth_gt)
-    vi3 = _geometry(_scaled(T_gt, vi3_scale), vi3_scale * depth_gt)
+    base = _geometry(_scaled(T_gt, base_scale * shrink), base_scale * depth_gt)
+    vi3 = _geometry(_scaled(T_gt, vi3_scale * shrink), vi3_scale * depth_gt)
     target = ImuTrajectory(R=T_gt[:, :3, :3], p=p, v=np.zeros((N, 3)), T_wc=_scaled(T_gt, 0.98))
     status = InitStatus.OK if ok else InitStatus.UNOBSERVABLE
     g_true = np.array([-9.81, 0.0, 0.0])
@@ -47,9 +48,10 @@ def make_clip_eval(seed: int, *, ok: bool = True, base_scale: float = 0.4, vi3_s
                       scale_sigma=sigma * vi3_scale / base_scale)
     result = AnchorResult(geometry=vi3 if ok else base, base=base, init=init, mode="init" if ok else "none",
                           alpha=init.scale, target=target if ok else None)
-    columns = {"base": metrics.geometry_metrics(base.T_wc, T_gt, base.depth, depth_gt)}
+    truth = depth_gt if with_depth else None
+    columns = {"base": metrics.geometry_metrics(base.T_wc, T_gt, base.depth, truth)}
     if ok:
-        columns["init"] = metrics.geometry_metrics(vi3.T_wc, T_gt, vi3.depth, depth_gt)
+        columns["init"] = metrics.geometry_metrics(vi3.T_wc, T_gt, vi3.depth, truth)
     gt_init = metrics.InitMetrics(gravity_err_deg=0.6, gyro_bias_err=0.002, gyro_bias_rel=0.1, v1_dir_deg=2.0,
                                   v1_mag_err=0.1, v1_mag_ratio=1.1)
     return ClipEval(indices=np.arange(10 * seed, 10 * seed + 2 * N, 2), stamps=0.1 * np.arange(N) + seed,
@@ -157,6 +159,26 @@ def test_a_backbone_that_knows_its_scale_is_scored_by_it_not_by_noisy_positions(
     assert s["claimed_outliers"] == {"count": 1, "claimed": 2, "share": 0.5}
     assert s["sigma_calibration"]["within_1sigma"] == pytest.approx(0.5)
     assert report.summarise([make_clip_eval(3)], mode="init")["clips"][0]["scale_exact"] is None
+
+
+def test_claims_by_depth_tell_a_wrong_scale_from_a_trajectory_that_misfits_its_depth() -> None:
+    """One scale serves the trajectory and the depth: a claim whose depth is right and whose positions are 20 % short
+    of it is off by its trajectory only, and the backbone's clips show it as a trajectory apart from its depth; a
+    claim 15 % off in both is off by both. Without depth ground truth neither is scored."""
+    short = make_clip_eval(1, vi3_scale=1.0, sigma=0.05, shrink=0.8)
+    wrong = make_clip_eval(2, vi3_scale=1.15, sigma=0.05)
+    right = make_clip_eval(3, vi3_scale=1.02, sigma=0.05)
+    s = report.summarise([short, wrong, right, make_clip_eval(4, ok=False, shrink=0.5)], mode="init")
+    assert s["claimed_outliers"] == {"count": 2, "claimed": 3, "share": pytest.approx(2 / 3)}
+    assert s["depth_claims"]["outliers"] == {"count": 1, "claimed": 3, "share": pytest.approx(1 / 3)}
+    assert s["depth_claims"]["calibration"]["within_2sigma"] == pytest.approx(2 / 3)
+    assert [c["scale_depth"] for c in s["clips"][:3]] == pytest.approx([1.0, 1.15, 1.02])
+    assert s["trajectory_vs_depth"] == {"clips": 4, "median": pytest.approx(0.9), "apart": 2}
+    assert ("by depth: claimed scales more than 10 % off: 1 of 3 (33.3 %)" in report.format_tables(s)
+            and "2 of 4 clips more than 10 % apart" in report.format_tables(s))
+    none = report.summarise([make_clip_eval(1, with_depth=False)], mode="init")
+    assert none["depth_claims"] is None and none["trajectory_vs_depth"] is None
+    assert "by depth" not in report.format_tables(none)
 
 
 def test_sigma_calibration_shares_and_no_sigma() -> None:

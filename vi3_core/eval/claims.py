@@ -8,6 +8,11 @@ clips without one, e.g. stationary ones, are not scored) and its relative sigma 
 sigma has about 68 % / 95 % of the errors within 1 / 2 sigma (Gaussian errors). The ground-truth instrument's clips
 are scored against the scale it predicted at, which it knows exactly (``ClipEval.exact_scale``): on a clip that
 moves a centimetre its pose noise would otherwise read as a scale error of tens of per cent.
+
+Where the input has depth ground truth, the same claims are also scored by their depth, |Scale (depth) - 1|
+(``metrics.scale_depth``), and each clip's prediction by how far its trajectory's scale and its depth's disagree
+(``trajectory_vs_depth``): one scale serves both, so a claim right by its depth and wrong by its trajectory is a
+backbone whose poses do not fit its own depth, not a wrong scale.
 """
 
 from __future__ import annotations
@@ -80,11 +85,31 @@ def scale_error(e: ClipEval, column: str) -> float:
     return abs(e.columns[column].scale_fit - 1.0)
 
 
-def clip_claims(evals: Sequence[ClipEval], column: str) -> Claims:
+def depth_scale_error(e: ClipEval, column: str) -> float:
+    """|Scale (depth) - 1| of the clip's ``column`` (NaN where it has none, or no depth ground truth)."""
+    return abs(e.columns[column].scale_depth - 1.0) if column in e.columns else float("nan")
+
+
+def clip_claims(evals: Sequence[ClipEval], column: str, *, by_depth: bool = False) -> Claims:
     """The claims of the evaluated clips' ``column`` ("init", "cond", "ttr": the VI3 output; "init" is what the
-    sigma describes), with the initialisation's relative sigma."""
+    sigma describes), with the initialisation's relative sigma; ``by_depth``: scored by their depth
+    (``depth_scale_error``) instead of their trajectory."""
     ok = [e for e in evals if e.ok]
-    return Claims.of((scale_error(e, column) for e in ok), (rel_sigma(e) for e in ok))
+    error = depth_scale_error if by_depth else scale_error
+    return Claims.of((error(e, column) for e in ok), (rel_sigma(e) for e in ok))
+
+
+def trajectory_vs_depth(evals: Sequence[ClipEval]) -> dict | None:
+    """How far each clip's prediction has its trajectory at another scale than its depth: per clip with both, the
+    ratio Scale (fit) / Scale (depth) of its base column; ``clips`` scored, their ``median`` ratio and ``apart``, those
+    more than SCALE_OUTLIER from 1 (None without depth ground truth)."""
+    ratio = np.array([e.columns["base"].scale_fit / e.columns["base"].scale_depth for e in evals
+                      if "base" in e.columns and e.columns["base"].scale_depth > 0])
+    ratio = ratio[np.isfinite(ratio)]
+    if not ratio.size:
+        return None
+    return {"clips": int(ratio.size), "median": float(np.median(ratio)),
+            "apart": int((np.abs(ratio - 1.0) > SCALE_OUTLIER).sum())}
 
 
 def format_outliers(outliers: dict) -> str:

@@ -22,7 +22,14 @@ import numpy as np
 from vi3_core.backbones import front_end
 from vi3_core.eval import coverage
 from vi3_core.eval.chained import ChainedMetrics, median_after_skip, scored_tail
-from vi3_core.eval.claims import Claims, clip_claims, format_calibration, format_outliers, rel_sigma
+from vi3_core.eval.claims import (
+    Claims,
+    clip_claims,
+    format_calibration,
+    format_outliers,
+    rel_sigma,
+    trajectory_vs_depth,
+)
 from vi3_core.eval.clip_eval import ClipEval
 from vi3_core.eval.links import LinkScore
 from vi3_core.init.initializer import GYRO_FAILURE
@@ -113,14 +120,19 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
     """The JSON report: ``n_clips``, ``n_ok``, ``n_paired`` (clips in the paired medians), ``columns`` (paired
     medians of every column: base, init, cond/ttr), ``base`` and ``vi3`` (its base and ``mode`` columns),
     ``base_all`` (the base over every clip), ``init`` (median init errors over ok clips), ``claimed_outliers`` and
-    ``sigma_calibration`` (``vi3_core.eval.claims``), ``status_counts``, ``note`` (why no clip is ok, "" otherwise),
-    ``hint`` (``gyro_check_hint``), ``front_end`` (``front_end.run_summary``) and a per-clip list."""
+    ``sigma_calibration`` (``vi3_core.eval.claims``), where the input has depth ground truth the same scored by depth
+    (``depth_claims``: ``outliers`` and ``calibration``) and ``trajectory_vs_depth`` (else both None),
+    ``status_counts``, ``note`` (why no clip is ok, "" otherwise), ``hint`` (``gyro_check_hint``), ``front_end``
+    (``front_end.run_summary``) and a per-clip list."""
     ok = [e for e in evals if e.ok]
     columns = expected_columns(mode)
     paired = [e for e in evals if all(c in e.columns for c in columns)]
     medians = paired_columns(paired, columns)
     init_rows = [e.init_metrics.as_dict() for e in ok if e.init_metrics is not None]
     counts = Counter(e.status for e in evals)
+    has_depth = any(np.isfinite(c.scale_depth) for e in evals for c in e.columns.values())
+    depth_claims = {"outliers": clip_claims(evals, mode, by_depth=True).outliers(),
+                    "calibration": clip_claims(evals, "init", by_depth=True).calibration()} if has_depth else None
     return _plain({
         "sequence": sequence, "backbone": backbone, "mode": mode, "init_source": init_source,
         "n_clips": len(evals), "n_ok": len(ok), "n_paired": len(paired),
@@ -131,6 +143,8 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
         "base_all": _column(evals, "base"),
         "claimed_outliers": clip_claims(evals, mode).outliers(),
         "sigma_calibration": clip_claims(evals, "init").calibration(),
+        "depth_claims": depth_claims,
+        "trajectory_vs_depth": trajectory_vs_depth(evals) if has_depth else None,
         "status_counts": {s.value: counts.get(s.value, 0) for s in InitStatus},
         "note": status_note(evals),
         "hint": gyro_check_hint(sum(e.reason.startswith(GYRO_FAILURE) for e in evals), len(evals)),
@@ -139,6 +153,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
                    "reason": e.reason, "mode": e.mode,
                    "scale_traj": e.columns[mode].scale_traj if mode in e.columns else None,
                    "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
+                   "scale_depth": e.columns[mode].scale_depth if mode in e.columns else None,
                    "scale_rel_sigma": rel_sigma(e),
                    "scale_exact": e.init.scale / e.exact_scale if e.ok and e.exact_scale else None,
                    **({"front_end": e.backbone_diagnostics["front_end"]}
@@ -201,11 +216,25 @@ def format_tables(summary: dict) -> str:
     claims = (f"claimed scales (ok clips) more than 10 % off: {format_outliers(summary['claimed_outliers'])}; "
               f"scale sigma: {format_calibration(summary['sigma_calibration'])}")
     parts = [title, _grid(["Metric", *(COLUMN_LABELS[c] for c in cols), "Base (all)"], rows), claims,
+             _depth_line(summary.get("depth_claims"), summary.get("trajectory_vs_depth")),
              _grid(["Initialisation", "error"], init_rows), f"clip status: {status}",
              _front_end_line(summary.get("front_end"))]
     if summary.get("depth_gt", "").startswith("unreadable"):
         parts.append(f"depth ground truth {summary['depth_gt']}")
     return "\n\n".join([p for p in parts if p] + [summary[k] for k in ("note", "hint") if summary.get(k)])
+
+
+def _depth_line(claims: dict | None, apart: dict | None) -> str:
+    """The claims scored by their depth and the predictions' trajectory against their depth ("" without depth ground
+    truth)."""
+    if claims is None:
+        return ""
+    line = (f"by depth: claimed scales more than 10 % off: {format_outliers(claims['outliers'])}; "
+            f"scale sigma: {format_calibration(claims['calibration'])}")
+    if apart is not None:
+        line += (f"; the backbone's trajectory against its depth: median scale ratio {apart['median']:.3f}, "
+                 f"{apart['apart']} of {apart['clips']} clips more than 10 % apart")
+    return line
 
 
 def format_clips(summary: dict) -> str:
