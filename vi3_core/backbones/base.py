@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from vi3_core import so3
-from vi3_core.types import Geometry
+from vi3_core.preintegration import preintegrate
+from vi3_core.types import Clip, Geometry
 
 #: Capabilities a backbone may declare.
 CAP_TTR = "ttr"  # has trainable groups for test-time refinement
@@ -66,6 +67,32 @@ class Prediction:
         return Geometry(T_wc=T, K=self.K.detach().double().cpu().numpy(),
                         depth=self.depth.detach().float().cpu().numpy() * scale,
                         conf=self.conf.detach().float().cpu().numpy(), metric=self.metric)
+
+
+@dataclass(frozen=True)
+class GyroRotations:
+    """A clip's camera rotations from its gyro, for a backbone that takes them (``Backbone.bind``): R_wc [n,3,3]
+    camera i to the first camera (the backbone's world), integrated with the gyro bias estimate ``bg`` [3] rad/s of
+    1-sigma ``bg_sigma`` rad/s (per axis); bias_jacobian [n,3,3] rad per rad/s in the first camera's frame,
+    R_wc(bg + d) = Exp(bias_jacobian d) R_wc(bg); clock_sigma [n] rad, the 1-sigma each rotation has from the
+    uncertainty of the IMU's clock against the frames' (a frame seen dt later turns by its rate change times dt)."""
+
+    R_wc: np.ndarray
+    bias_jacobian: np.ndarray
+    bg: np.ndarray
+    bg_sigma: float
+    clock_sigma: np.ndarray
+
+    @staticmethod
+    def of(clip: Clip, bg: np.ndarray, bg_sigma: float, offset_sigma: float) -> GyroRotations:
+        """From the clip's IMU (which must cover its stamps) through its mount, R_C1Ci = R_CB R_B1Bi R_BC, its clock
+        good to ``offset_sigma`` s."""
+        pre = preintegrate(clip.imu, clip.stamps, bg, jacobians=True)
+        R_BC = np.asarray(clip.T_BC, np.float64)[:3, :3]
+        rates = np.stack([np.interp(clip.stamps, clip.imu.t, clip.imu.gyro[:, j]) for j in range(3)], 1)
+        clock = np.linalg.norm(rates - rates[0], axis=1) * offset_sigma
+        return GyroRotations(R_BC.T @ pre.R @ R_BC, R_BC.T @ pre.J.phi_bg, np.asarray(bg, np.float64),
+                             float(bg_sigma), clock)
 
 
 @dataclass
@@ -125,9 +152,12 @@ class Backbone(abc.ABC):
         """The torch modules holding all parameters (put in eval mode; frozen except TTR groups)."""
         return []
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True,
+             gyro: GyroRotations | None = None) -> None:
         """Called with each ``vi3_core.types.Clip`` just before it is predicted (``StreamEstimator``, with the
-        configured calibration), for that prediction only. ``depth_frames``: the indices of the frames whose depth the
+        configured calibration), for that prediction only; ``gyro``: its camera rotations from the gyro (on the clock
+        and through the mount the rig's self-calibration applied), which the ``classical`` backbone's bundle
+        adjustment takes as a prior. ``depth_frames``: the indices of the frames whose depth the
         caller reads (None: every frame); a backbone whose depth costs per frame may predict only those, the others
         NaN with zero confidence. Nothing for a model, which sees only its images and predicts every frame's depth in
         one pass; the evaluation's ground-truth instrument predicts from the clip's ground truth, and the

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from vi3_core import so3
-from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, ParamGroups, Prediction
+from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, GyroRotations, ParamGroups, Prediction
 from vi3_core.dataset.sequence import gt_camera_poses
 from vi3_core.errors import DataError
 from vi3_core.sim.visual import DepthNoise, PoseNoise, noisy_poses
@@ -44,7 +44,8 @@ class GroundTruthPoses(Backbone):
     def exact_scale(self) -> float | None:
         return None if np.isnan(self.last_scale) else self.last_scale
 
-    def bind(self, clip: Clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
+    def bind(self, clip: Clip, *, depth_frames: np.ndarray | None = None, continued: bool = True,
+             gyro: GyroRotations | None = None) -> None:
         """The clip whose ground truth the next prediction uses (the stream binds each clip as it processes it, with
         the configured calibration); its depth is that of every frame whatever ``depth_frames`` says."""
         if clip.gt is None:

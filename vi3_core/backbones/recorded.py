@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, ParamGroups, Prediction
+from vi3_core.backbones.base import Backbone, BackboneInputs, Condition, GyroRotations, ParamGroups, Prediction
 from vi3_core.errors import DataError, ModeNotSupported
 
 
@@ -45,9 +45,10 @@ class RecordingBackbone(Backbone):
         self.patch_size, self.needs_images = inner.patch_size, inner.needs_images
         self._key: tuple | None = None
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True,
+             gyro: GyroRotations | None = None) -> None:
         self._key = clip_key(clip)
-        self.inner.bind(clip, depth_frames=depth_frames, continued=continued)
+        self.inner.bind(clip, depth_frames=depth_frames, continued=continued, gyro=gyro)
 
     def forget(self) -> None:
         self.inner.forget()
@@ -82,7 +83,8 @@ class RecordedBackbone(Backbone):
         self.recording, self.name = recording, name
         self._key: tuple | None = None
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True,
+             gyro: GyroRotations | None = None) -> None:
         self._key = clip_key(clip)
 
     def preprocess(self, images: np.ndarray, K: np.ndarray) -> BackboneInputs:

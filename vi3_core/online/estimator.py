@@ -116,6 +116,15 @@ def _merge_imu(a: ImuSamples | None, b: ImuSamples | None) -> ImuSamples | None:
     return imu.select(keep) if len(keep) else None
 
 
+def _median_bias(bgs: list[tuple[float, np.ndarray]]) -> tuple[np.ndarray, float]:
+    """Median [3] rad/s of (stamp, own gyro-bias estimate) pairs and its 1-sigma (rad/s, largest axis, from their
+    spread; 0 with fewer than three)."""
+    b = np.array([bg for _, bg in bgs])
+    med = np.median(b, axis=0)
+    spread = 1.4826 * np.median(np.abs(b - med), axis=0).max() / math.sqrt(len(b)) if len(b) > 2 else 0.0
+    return med, float(spread)
+
+
 class OnlineEstimator:
     """Window fits of the stream for each clip's initialisation, and the odom trajectory of the chained clips.
 
@@ -180,10 +189,17 @@ class OnlineEstimator:
         ``online_bg_window`` seconds, and its 1-sigma (rad/s, largest axis, from their spread; the median ignores a clip
         whose rotations failed)."""
         self._bgs = [(t, b) for t, b in self._bgs if t >= t1 - self.options.online_bg_window] + [(t1, np.asarray(bg))]
-        bgs = np.array([b for _, b in self._bgs])
-        med = np.median(bgs, axis=0)
-        spread = 1.4826 * np.median(np.abs(bgs - med), axis=0).max() / math.sqrt(len(bgs)) if len(bgs) > 2 else 0.0
-        return med, float(spread)
+        return _median_bias(self._bgs)
+
+    @property
+    def gyro_bias(self) -> tuple[np.ndarray, float] | None:
+        """The filtered gyro bias after the last clip (``_filtered_bg``) and its 1-sigma (rad/s), floored at the noise
+        model's ``gyro_bias_sigma``: for the next clip's backbone (``GyroRotations``); None before three clips gave
+        their own estimate (no spread to say how good the median is)."""
+        if len(self._bgs) < 3:
+            return None
+        med, spread = _median_bias(self._bgs)
+        return med, max(spread, self.init_options.gyro_bias_sigma)
 
     # ---- initialisation -------------------------------------------------------------------------------------
 

@@ -15,6 +15,7 @@ the oracle from the clip's ground truth. ``process`` returns everything the clip
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -22,7 +23,7 @@ import cv2
 import numpy as np
 
 from vi3_core.anchor import MODES, AnchorOptions, anchor, check_mode
-from vi3_core.backbones.base import Backbone
+from vi3_core.backbones.base import Backbone, GyroRotations
 from vi3_core.init import InitOptions, oracle_init, validate
 from vi3_core.online.calibration import CalibrationOptions, RigCalibrator, RigEstimate, frame_rates
 from vi3_core.online.chain import ChainedClip, OdomState, Trajectory
@@ -136,6 +137,16 @@ class StreamEstimator:
         est = self.calibrator.estimate
         return max(0.0, est.time_offset + min(3.0 * est.time_offset_sigma, IMU_LEAD_MARGIN_S))
 
+    def _clock_sigma(self, current: RigEstimate | None, rig: RigEstimate | None) -> float:
+        """s: how far the clip's IMU may be off its frames' clock: the applied time offset's sigma; else, with
+        self-calibration, how far the rig's estimate puts the configured offset (its sigma included); else the error
+        model's ``time_offset_sigma``."""
+        if rig is not None and rig.offset_applied:
+            return rig.time_offset_sigma
+        if current is not None:
+            return math.hypot(current.time_offset, current.time_offset_sigma)
+        return self.init_options.time_offset_sigma
+
     def reset(self, reason: str) -> None:
         """Forget the stream (``reason``: time went back, so the window, its biases, the kept IMU, the odom state and
         what the backbone kept of earlier clips no longer hold): the next clip starts as the first did, except that the
@@ -188,8 +199,12 @@ class StreamEstimator:
         if before_backbone is not None and not before_backbone():
             return None
         clip = self._derolled(clip, shared)
-        # without the window each clip stands alone (the independent evaluation runs its clips in any order)
-        self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n), continued=self.window is not None)
+        # without the window each clip stands alone (the independent evaluation runs its clips in any order); with
+        # it, the gyro's rotations on the clock and through the mount the rig applied, at the window's gyro bias
+        bias = self.window.gyro_bias if self.window is not None else None
+        gyro = GyroRotations.of(clip, *bias, self._clock_sigma(current, rig)) if bias is not None else None
+        self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n), continued=self.window is not None,
+                           gyro=gyro)
         fast: list[AnchorResult] = []
 
         def take_fast(result: AnchorResult) -> None:

@@ -31,6 +31,7 @@ The last clip's inputs, status and reason are also on the backbone (``last_input
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -40,7 +41,15 @@ import torch
 
 from vi3_core import so3, so3_torch
 from vi3_core.backbones._hub import check_clip, scaled_K
-from vi3_core.backbones.base import CAP_TTR, Backbone, BackboneInputs, Condition, ParamGroups, Prediction
+from vi3_core.backbones.base import (
+    CAP_TTR,
+    Backbone,
+    BackboneInputs,
+    Condition,
+    GyroRotations,
+    ParamGroups,
+    Prediction,
+)
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
 from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks
@@ -119,6 +128,9 @@ class ClassicalBackbone(Backbone):
     first); ``downscale`` input pixels per working pixel (4: 752x480 -> 188x120); ``tracker``: the front end's
     ``TrackerOptions`` (its ``max_features`` tracked corners per frame); ``n_depths``, ``n_sources``, ``best_k``,
     ``window``: plane-sweep settings (see ``mvs.plane_sweep``); ``bundle_adjust``: refine poses and points jointly;
+    ``gyro_sigma_deg``: the 1-sigma of the gyro's rotation of each frame (its noise, and what is left of the mount's
+    and the time offset's errors) when ``bind`` gives the clip's (``GyroRotations``): the bundle adjustment's prior on
+    the rotations, up to a gyro bias the clip fits (0: no prior, the images alone);
     ``threads``: Python threads that sweep reference frames concurrently (None: torch's intra-op thread count when
     the clip comes, the process's ``threads`` setting, see ``vi3_core.threads``).
 
@@ -141,7 +153,7 @@ class ClassicalBackbone(Backbone):
                  max_side: int = 1024, downscale: float = 4.0, tracker: TrackerOptions | None = None,
                  n_depths: int = 24,
                  n_sources: int = 2, best_k: int = 2, window: int = 7, bundle_adjust: bool = True,
-                 threads: int | None = None) -> None:
+                 gyro_sigma_deg: float = 0.05, threads: int | None = None) -> None:
         super().__init__(device=device, dtype=dtype)
         if downscale < 1 or max_side < 64:
             raise ValueError(f"downscale must be >= 1 and max_side >= 64, got {downscale} and {max_side}")
@@ -150,6 +162,9 @@ class ClassicalBackbone(Backbone):
         self.tracker = FrameTracker(tracker)
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
+        if not (math.isfinite(gyro_sigma_deg) and gyro_sigma_deg >= 0):
+            raise ValueError(f"gyro_sigma_deg must be finite and >= 0, got {gyro_sigma_deg}")
+        self.gyro_sigma = math.radians(gyro_sigma_deg)
         self.threads = threads
         self.mvs_options = dict(n_depths=n_depths, n_sources=n_sources, best_k=best_k, window=window)
         self.bundle_adjust = bundle_adjust
@@ -157,14 +172,17 @@ class ClassicalBackbone(Backbone):
         self.last_inputs: ClassicalInputs | None = None
         self._depth_frames: np.ndarray | None = None  # of the clip bound, for its ``preprocess``
         self._stamps: np.ndarray | None = None  # of the clip bound: the keys of its frames in the tracker
+        self._gyro: GyroRotations | None = None  # of the clip bound
         # the last clip's structure for the next one's warm start: (its last frame's key, track ids [m], points [m,3]
         # in that last camera's frame, at that clip's SfM scale)
         self._structure: tuple[float, np.ndarray, np.ndarray] | None = None
 
-    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True) -> None:
-        """The clip the next ``preprocess`` sees: its frames' stamps (which of them the front end tracked already)
-        and the frames whose depth is read (the plane sweep runs for those only); not ``continued``: tracked afresh."""
-        self._depth_frames = depth_frames
+    def bind(self, clip, *, depth_frames: np.ndarray | None = None, continued: bool = True,
+             gyro: GyroRotations | None = None) -> None:
+        """The clip the next ``preprocess`` sees: its frames' stamps (which of them the front end tracked already),
+        the frames whose depth is read (the plane sweep runs for those only) and its rotations from the gyro (the
+        bundle adjustment's prior); not ``continued``: tracked afresh."""
+        self._depth_frames, self._gyro = depth_frames, gyro
         self._stamps = None if clip is None or not continued else np.asarray(clip.stamps, np.float64)
 
     def forget(self) -> None:
@@ -203,8 +221,10 @@ class ClassicalBackbone(Backbone):
         workers = self.threads or torch.get_num_threads()
         depth_frames, self._depth_frames = self._depth_frames, None
         stamps, self._stamps = self._stamps, None
+        gyro, self._gyro = self._gyro, None
         with torch_threads(1):
-            return self._preprocess(images, K, workers, depth_frames, stamps)
+            return self._preprocess(images, K, workers, depth_frames, stamps,
+                                    gyro if gyro is not None and len(gyro.R_wc) == len(images) else None)
 
     def _track(self, gray: np.ndarray, stamps: np.ndarray | None) -> tuple[Tracks, list[float], FrameLosses]:
         """The tracks of the clip's frames ``gray`` [n,H,W], the frames' keys and what became of the tracks into the
@@ -250,8 +270,8 @@ class ClassicalBackbone(Backbone):
         good = np.isfinite(sfm.points[:, 0])
         self._structure = (last_key, tracks.ids[good], (sfm.points[good] - t) @ R)
 
-    def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int,
-                    depth_frames: np.ndarray | None, stamps: np.ndarray | None) -> ClassicalInputs:
+    def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int, depth_frames: np.ndarray | None,
+                    stamps: np.ndarray | None, gyro: GyroRotations | None) -> ClassicalInputs:
         images, K = check_clip(images, K)
         src_hw = images.shape[1:3]
         images, K = _shrunk(images, K, self.max_side)
@@ -269,7 +289,8 @@ class ClassicalBackbone(Backbone):
         tracks, keys, losses = self._track(gray, stamps)
         timings["tracks_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        sfm = estimate_poses(tracks, K, known=self._known(tracks, keys[0]), bundle_adjust=self.bundle_adjust)
+        sfm = estimate_poses(tracks, K, known=self._known(tracks, keys[0]), bundle_adjust=self.bundle_adjust,
+                             gyro=gyro, gyro_sigma=self.gyro_sigma)
         timings["sfm_s"] = time.perf_counter() - t0
         self._keep_structure(sfm, tracks, keys[-1])
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from vi3_core.backbones.base import GyroRotations
 from vi3_core.backbones.classical.bundle import bundle_adjust as refine
 from vi3_core.backbones.classical.tracks import Tracks
 
@@ -161,10 +162,12 @@ def _register(uv: np.ndarray, visible: np.ndarray, K: np.ndarray, R_wc: np.ndarr
 def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = None, stationary_px: float = 0.5,
                    min_parallax_px: float = 1.0, min_tracks: int = 30, ransac_px: float = 1.0,
                    max_reproj_px: float = 3.0, min_angle_deg: float = 0.3, bundle_adjust: bool = True,
-                   ba_iterations: int = 20) -> SfmResult:
+                   ba_iterations: int = 20, gyro: GyroRotations | None = None, gyro_sigma: float = 0.0) -> SfmResult:
     """Structure from motion over the clip (see the module docstring). ``K`` [3,3] of the tracked images; ``known``
     [m,3]: points of the tracks (NaN where unknown) from the clip before, in this clip's world, used in place of a
-    two-view start when at least ``min_tracks`` of them are seen in the first frame."""
+    two-view start when at least ``min_tracks`` of them are seen in the first frame; ``gyro``, ``gyro_sigma``: the
+    bundle adjustment's rotation prior (``bundle.bundle_adjust``; the gyro bias it fits is in the diagnostics,
+    ``gyro_bias``)."""
     uv, visible = tracks.uv, tracks.visible
     n = uv.shape[1]
     eye, zero = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
@@ -226,7 +229,10 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = 
     points = triangulate(uv, visible, R_wc, t_wc, K)
     points = _clean_points(np.where(np.isfinite(points[:, :1]), points, carried), uv, visible, R_wc, t_wc, K, **final)
     if bundle_adjust:
-        R_wc, t_wc, points = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations)
+        R_wc, t_wc, points, bias = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations, gyro=gyro,
+                                          gyro_sigma=gyro_sigma)
+        if bias is not None:
+            diag["gyro_bias"] = bias.tolist()
         points = _clean_points(points, uv, visible, R_wc, t_wc, K, **final)
     good = np.isfinite(points[:, 0])
     proj, _ = project(points[good], R_wc, t_wc, K)
