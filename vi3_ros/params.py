@@ -108,6 +108,9 @@ PARAMS: tuple[Param, ...] = (
     Param("rolling_shutter_readout", StreamOptions, "s from the first row's exposure to the last's of a rolling-"
           "shutter camera (a RealSense's colour stream: about 0.025): each frame is turned back to its stamp's "
           "camera by the gyro before the backbone sees it; 0: a global shutter", range=(0.0, MAX_READOUT_S)),
+    Param("gyro_prior", StreamOptions, "hand the backbone each clip's camera rotations from the gyro (from the "
+          "third clip on, at the window's gyro bias): the classical backbone's bundle adjustment takes them as a "
+          "prior, so that short clips that mostly turn do not trade translation for rotation; false: images alone"),
     Param("use_tf_static", InputOptions, "take the camera pose in the IMU frame from /tf_static (imu_frame -> "
           "camera_frame) instead of calib_file"),
     # frames

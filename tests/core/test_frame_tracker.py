@@ -307,16 +307,16 @@ def test_gyro_rotations_are_the_cameras_and_first_order_in_the_bias():
 def test_the_stream_gives_the_backbone_the_gyro_once_its_window_has_a_gyro_bias(room):
     """Chained clips of the room: the first three clips' rotations give the window its gyro-bias estimate, and from
     the fourth on the backbone's bundle adjustment takes the gyro's rotations at it (and fits a bias near the one the
-    room was generated with); clips on their own never do."""
+    room was generated with); clips on their own never do, nor any with ``gyro_prior`` off."""
     clips = [make_clip(room, np.arange(14 * k, 14 * k + 15, 2), history_s=60.0) for k in range(5)]
-    for online in (True, False):
+    for online, prior in ((True, True), (False, True), (True, False)):
         backbone = ClassicalBackbone()
-        stream = StreamEstimator(backbone, options=StreamOptions(online=online))
+        stream = StreamEstimator(backbone, options=StreamOptions(online=online, gyro_prior=prior))
         fitted = []
         for clip in clips:
             stream.process(clip)
             fitted.append(backbone.diagnostics().get("gyro_bias"))
-        if online:
+        if online and prior:
             assert [b is not None for b in fitted] == [False, False, False, True, True]
             np.testing.assert_allclose(fitted[-1], clips[-1].gt.bg, atol=2e-3)
         else:

@@ -46,13 +46,16 @@ class StreamOptions:
     the frames the stream itself reads get depth from a backbone that predicts depth frame by frame
     (``StreamEstimator.depth_frames``). rolling_shutter_readout: s from the first row's exposure to the last's of a
     rolling-shutter camera, whose frames are then turned back to their stamps' camera by the gyro before the backbone
-    sees them (``vi3_core.rolling_shutter``); 0: a global shutter."""
+    sees them (``vi3_core.rolling_shutter``); 0: a global shutter. gyro_prior: hand the backbone each clip's
+    rotations from the gyro once the window has a gyro-bias estimate (``GyroRotations``; the ``classical`` backbone's
+    bundle adjustment takes them as a prior); false: the backbone sees the images alone."""
 
     online: bool = True
     mode: str = "init"
     init_source: str = "vi3"
     all_depth: bool = False
     rolling_shutter_readout: float = 0.0
+    gyro_prior: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.rolling_shutter_readout <= MAX_READOUT_S:
@@ -201,7 +204,7 @@ class StreamEstimator:
         clip = self._derolled(clip, shared)
         # without the window each clip stands alone (the independent evaluation runs its clips in any order); with
         # it, the gyro's rotations on the clock and through the mount the rig applied, at the window's gyro bias
-        bias = self.window.gyro_bias if self.window is not None else None
+        bias = self.window.gyro_bias if self.window is not None and self.options.gyro_prior else None
         gyro = GyroRotations.of(clip, *bias, self._clock_sigma(current, rig)) if bias is not None else None
         self.backbone.bind(configured, depth_frames=self.depth_frames(configured.n), continued=self.window is not None,
                            gyro=gyro)
