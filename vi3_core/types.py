@@ -167,7 +167,9 @@ class Geometry:
 
     T_wc: [n,4,4] camera-to-world, OpenCV axes, world = first camera (T_wc[0] = I);
     K: [n,3,3] at the prediction resolution; depth: [n,h,w] z-depth (> 0, NaN/0 invalid);
-    conf: [n,h,w] higher is better; metric: whether translation and depth are in metres.
+    conf: [n,h,w] higher is better; metric: whether translation and depth are in metres; traj_depth_sigma: the
+    1-sigma of the log of the trajectory's scale against the depth's, where the backbone knows how far the two can
+    disagree (0: it does not say; the window then takes them at one scale).
     """
 
     T_wc: np.ndarray
@@ -175,6 +177,7 @@ class Geometry:
     depth: np.ndarray
     conf: np.ndarray
     metric: bool = False
+    traj_depth_sigma: float = 0.0
 
     @property
     def n(self) -> int:
@@ -184,7 +187,7 @@ class Geometry:
         """Translation and depth multiplied by ``s`` (rotation and intrinsics untouched)."""
         T = self.T_wc.copy()
         T[:, :3, 3] *= s
-        return Geometry(T, self.K.copy(), self.depth * s, self.conf.copy(), self.metric)
+        return Geometry(T, self.K.copy(), self.depth * s, self.conf.copy(), self.metric, self.traj_depth_sigma)
 
 
 class InitStatus(str, enum.Enum):

@@ -224,6 +224,8 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
             values["scale_link"] = decision.link.describe() if decision.link is not None else decision.link_note
         if np.isfinite(decision.scale_p):  # the clip's own scale against the window's (the window's guard)
             values["scale_consistency_p"] = f"{decision.scale_p:.3g}"
+        if decision.traj_depth_sigma > 0:
+            values["traj_depth_sigma"] = f"{decision.traj_depth_sigma:.3g}"
         values["odom_segment"] = len(trajectory.resets)  # 0: the first; each reset starts one (its first frame)
         if trajectory.resets:
             values["odom_segment_start"] = f"{trajectory.resets[-1]:.9f}"

@@ -114,7 +114,8 @@ def test_frames_six_times_euroc_size_are_worked_on_at_a_bounded_size(first_clip)
 
 @pytest.mark.slow
 def test_scale_is_normalised_like_vggt(half_clip):
-    """Confidence-weighted mean distance of the dense points from the first camera is 1; not metric."""
+    """Confidence-weighted mean distance of the dense points from the first camera is 1; not metric; the trajectory's
+    scale against the depth's has a sigma."""
     backbone = make_backbone("classical")
     with torch.no_grad():
         pred = backbone.forward(backbone.preprocess(*half_clip))
@@ -124,6 +125,11 @@ def test_scale_is_normalised_like_vggt(half_clip):
     dist = (pts + pred.t_wc[:, :, None, None]).norm(dim=1)
     assert float((pred.conf * dist).sum() / pred.conf.sum()) == pytest.approx(1.0, rel=1e-4)
     assert pred.metric is False
+    # the trajectory's scale against the depth's: the bundle adjustment's formal sigma times the inflation, kept by
+    # the geometry through a scaling (a log ratio: no unit)
+    formal = backbone.diagnostics()["traj_depth_sigma"]
+    assert 0 < formal < 0.1 and pred.traj_depth_sigma == pytest.approx(backbone.traj_depth_inflation * formal)
+    assert pred.geometry(3.0).scaled(0.5).traj_depth_sigma == pred.traj_depth_sigma
 
 
 @pytest.fixture(scope="module")

@@ -18,9 +18,9 @@ N, H, W = 6, 24, 32
 K = np.array([[20.0, 0, 16.0], [0, 20.0, 12.0], [0, 0, 1]])
 
 
-def _geometry(T: np.ndarray, depth: np.ndarray) -> Geometry:
+def _geometry(T: np.ndarray, depth: np.ndarray, traj_depth_sigma: float = 0.0) -> Geometry:
     return Geometry(T_wc=T, K=np.tile(K, (len(T), 1, 1)), depth=depth.astype(np.float32),
-                    conf=np.ones_like(depth, dtype=np.float32))
+                    conf=np.ones_like(depth, dtype=np.float32), traj_depth_sigma=traj_depth_sigma)
 
 
 def _scaled(T: np.ndarray, s: float) -> np.ndarray:
@@ -30,15 +30,16 @@ def _scaled(T: np.ndarray, s: float) -> np.ndarray:
 
 
 def make_clip_eval(seed: int, *, ok: bool = True, base_scale: float = 0.4, vi3_scale: float = 1.05,
-                   sigma: float = float("nan"), shrink: float = 1.0, with_depth: bool = True) -> ClipEval:
+                   sigma: float = float("nan"), shrink: float = 1.0, with_depth: bool = True,
+                   traj_depth_sigma: float = 0.0) -> ClipEval:
     """A clip whose base is ``base_scale`` and VI3 output ``vi3_scale`` times the truth, their positions ``shrink``
-    times that (a trajectory at another scale than the depth); ``sigma``: the init's relative scale sigma;
-    ``with_depth``: scored against depth ground truth."""
+    times that (a trajectory at another scale than the depth, of the base's ``traj_depth_sigma``); ``sigma``: the
+    init's relative scale sigma; ``with_depth``: scored against depth ground truth."""
     rng = np.random.default_rng(seed)
     p = np.column_stack([np.linspace(0, 1.0, N), 0.2 * np.sin(np.linspace(0, 2, N)), np.zeros(N)])
     T_gt = so3.relative_to_first(so3.make_T(so3.exp(rng.normal(scale=0.05, size=(N, 3))), p))
     depth_gt = rng.uniform(1.0, 5.0, size=(N, H, W))
-    base = _geometry(_scaled(T_gt, base_scale * shrink), base_scale * depth_gt)
+    base = _geometry(_scaled(T_gt, base_scale * shrink), base_scale * depth_gt, traj_depth_sigma)
     vi3 = _geometry(_scaled(T_gt, vi3_scale * shrink), vi3_scale * depth_gt)
     target = ImuTrajectory(R=T_gt[:, :3, :3], p=p, v=np.zeros((N, 3)), T_wc=_scaled(T_gt, 0.98))
     status = InitStatus.OK if ok else InitStatus.UNOBSERVABLE
@@ -173,12 +174,25 @@ def test_claims_by_depth_tell_a_wrong_scale_from_a_trajectory_that_misfits_its_d
     assert s["depth_claims"]["outliers"] == {"count": 1, "claimed": 3, "share": pytest.approx(1 / 3)}
     assert s["depth_claims"]["calibration"]["within_2sigma"] == pytest.approx(2 / 3)
     assert [c["scale_depth"] for c in s["clips"][:3]] == pytest.approx([1.0, 1.15, 1.02])
-    assert s["trajectory_vs_depth"] == {"clips": 4, "median": pytest.approx(0.9), "apart": 2}
+    assert s["trajectory_vs_depth"] == {"clips": 4, "median": pytest.approx(0.9), "apart": 2, "sigmas": None}
     assert ("by depth: claimed scales more than 10 % off: 1 of 3 (33.3 %)" in report.format_tables(s)
             and "2 of 4 clips more than 10 % apart" in report.format_tables(s))
     none = report.summarise([make_clip_eval(1, with_depth=False)], mode="init")
     assert none["depth_claims"] is None and none["trajectory_vs_depth"] is None
     assert "by depth" not in report.format_tables(none)
+
+
+def test_the_trajectory_against_depth_is_scored_in_the_backbones_own_sigmas() -> None:
+    """Five clips whose trajectories are 0.9-1.1 of their depth, the backbone saying 5 % (one clip) or 2.5 %: the
+    report gives the robust spread of log(ratio) / traj_depth_sigma, and each clip's traj_depth_sigma."""
+    shrinks, tds = [0.9, 0.95, 1.0, 1.05, 1.1], [0.05, 0.025, 0.025, 0.025, 0.025]
+    s = report.summarise([make_clip_eval(i + 1, shrink=r, traj_depth_sigma=t) for i, (r, t) in
+                          enumerate(zip(shrinks, tds))], mode="init")
+    z = np.log(shrinks) / np.array(tds)
+    spread = 1.4826 * np.median(np.abs(z - np.median(z)))
+    assert s["trajectory_vs_depth"]["sigmas"] == pytest.approx(spread, rel=1e-3)
+    assert [c["traj_depth_sigma"] for c in s["clips"]] == tds
+    assert f"spread {spread:.2f} times its traj_depth_sigma" in report.format_tables(s)
 
 
 def test_sigma_calibration_shares_and_no_sigma() -> None:

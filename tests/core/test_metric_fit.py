@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from vi3_core import so3
-from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, fit_stamps, marginalise
+from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, ScaleLink, fit_stamps, marginalise
 from vi3_core.fit.layout import PriorLayout
+from vi3_core.fit.metric_fit import _links_whitener
 from vi3_core.fit.prior import GaussianPrior, sqrt_of_info
 from vi3_core.init import InitOptions, initialise
 from vi3_core.online.window import Member, Window
@@ -196,6 +197,44 @@ def test_online_window_learns_the_imu_level_and_is_not_attenuated_by_a_noisy_imu
     err, rel, levels = _online_levels(0, 0.006, True)
     assert levels[0] < 0.3 and abs(np.median(err / rel)) < 0.5 and np.mean(np.abs(err) < 2 * rel) >= 0.9, \
         (levels, np.median(err / rel))
+
+
+def test_a_clips_trajectory_off_its_depth_is_no_confident_claim_with_its_traj_depth_sigma():
+    """Eight linked clips (the links: the true depth ratios at 1 %), one of whose trajectories is 13 % short of its
+    depth: taken at one scale, the links carry that clip's trajectory scale 12 % off at a 2 % sigma; with its
+    traj_depth_sigma (10 %) the window leaves it to its own IMU (within 2 sigma) and the other clips as they were."""
+    imu, clips, scales, bg, g, T_BC = _window_case(3, 8, PoseNoise(pos_m=0.01, rot_deg=0.1))
+    off, shrink = 5, 0.87
+    T = clips[off].T_wc.copy()
+    T[:, :3, 3] *= shrink
+    truth = scales.copy()
+    truth[off] /= shrink
+    links = [ScaleLink(float(np.log(scales[k - 1] / scales[k])), 0.01) for k in range(1, len(clips))]
+    out = {}
+    for tau in (0.0, 0.1):
+        fitted = [FitClip(c.stamps, T if k == off else c.T_wc, 0.01 / s, tau if k == off else 0.0)
+                  for k, (c, s) in enumerate(zip(clips, scales))]
+        pre = preintegrate(imu.window(fitted[0].stamps[0], fitted[-1].stamps[-1]), fit_stamps(fitted), bg,
+                           jacobians=True)
+        fit = MetricFit(fitted, pre, T_BC, noise=ImuNoiseModel(), gravity_norm=9.81, scale_links=links)
+        res = fit.solve(fit.initial_state(g[0]))
+        out[tau] = (res.scale / truth - 1, res.scale_rel_sigma)
+    (err0, sig0), (err1, sig1) = out[0.0], out[0.1]
+    assert abs(err0[off]) > 4 * sig0[off], (err0, sig0)
+    assert abs(err1[off]) < 2 * sig1[off], (err1, sig1)
+    others = np.arange(len(clips)) != off
+    assert np.all(np.abs(err1[others]) < 2 * sig1[others]) and np.allclose(sig1[others], sig0[others], rtol=0.1)
+
+
+def test_the_scale_links_whitener_is_a_random_effect_per_clip():
+    """Links 1, 2 (sharing clip 1) and 4: variances sigma^2 + tau_k^2 + tau_(k-1)^2, -tau_1^2 between the first two,
+    none with the link that shares no clip."""
+    W = _links_whitener([(1, 0.0, 0.01), (2, 0.0, 0.02), (4, 0.0, 0.01)], [0.0, 0.05, 0.03, 0.0, 0.1])
+    C = np.linalg.inv(W.T @ W)
+    np.testing.assert_allclose(C, [[0.01**2 + 0.05**2, -0.05**2, 0.0],
+                                   [-0.05**2, 0.02**2 + 0.05**2 + 0.03**2, 0.0],
+                                   [0.0, 0.0, 0.01**2 + 0.1**2]], atol=1e-12)
+    assert np.allclose(W, np.tril(W))
 
 
 def test_marginalising_old_clips_keeps_their_evidence():

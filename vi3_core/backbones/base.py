@@ -50,7 +50,8 @@ class Condition:
 @dataclass
 class Prediction:
     """Differentiable outputs (torch). R_wc [n,3,3]; t_wc [n,3] raw translation (model units, or metres
-    when ``metric``); K [n,3,3]; depth [n,h,w] z-depth (> 0); conf [n,h,w] higher is better."""
+    when ``metric``); K [n,3,3]; depth [n,h,w] z-depth (> 0); conf [n,h,w] higher is better; traj_depth_sigma:
+    ``Geometry``'s."""
 
     R_wc: torch.Tensor
     t_wc: torch.Tensor
@@ -58,6 +59,7 @@ class Prediction:
     depth: torch.Tensor
     conf: torch.Tensor
     metric: bool = False
+    traj_depth_sigma: float = 0.0
 
     def geometry(self, scale: float = 1.0) -> Geometry:
         """Detached numpy ``Geometry`` with translation and depth multiplied by ``scale``."""
@@ -66,7 +68,8 @@ class Prediction:
         T = so3.make_T(R, self.t_wc.detach().double().cpu().numpy() * scale)
         return Geometry(T_wc=T, K=self.K.detach().double().cpu().numpy(),
                         depth=self.depth.detach().float().cpu().numpy() * scale,
-                        conf=self.conf.detach().float().cpu().numpy(), metric=self.metric)
+                        conf=self.conf.detach().float().cpu().numpy(), metric=self.metric,
+                        traj_depth_sigma=self.traj_depth_sigma)
 
 
 @dataclass(frozen=True)

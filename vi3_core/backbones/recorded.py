@@ -60,7 +60,8 @@ class RecordingBackbone(Backbone):
         pred = self.inner.forward(inputs, condition)
         if condition is None and not torch.is_grad_enabled() and self._key is not None:
             self.recording.predictions[self._key] = Prediction(*(t.detach().clone() for t in (
-                pred.R_wc, pred.t_wc, pred.K, pred.depth, pred.conf)), metric=pred.metric)
+                pred.R_wc, pred.t_wc, pred.K, pred.depth, pred.conf)), metric=pred.metric,
+                traj_depth_sigma=pred.traj_depth_sigma)
             self.recording.diagnostics[self._key] = self.inner.diagnostics()
         return pred
 

@@ -102,14 +102,20 @@ def clip_claims(evals: Sequence[ClipEval], column: str, *, by_depth: bool = Fals
 def trajectory_vs_depth(evals: Sequence[ClipEval]) -> dict | None:
     """How far each clip's prediction has its trajectory at another scale than its depth: per clip with both, the
     ratio Scale (fit) / Scale (depth) of its base column; ``clips`` scored, their ``median`` ratio and ``apart``, those
-    more than SCALE_OUTLIER from 1 (None without depth ground truth)."""
-    ratio = np.array([e.columns["base"].scale_fit / e.columns["base"].scale_depth for e in evals
-                      if "base" in e.columns and e.columns["base"].scale_depth > 0])
-    ratio = ratio[np.isfinite(ratio)]
-    if not ratio.size:
+    more than SCALE_OUTLIER from 1, and ``sigmas``: the robust 1-sigma (1.4826 MAD) of log(ratio) over the
+    backbone's own ``traj_depth_sigma`` of each clip that has one (1 where the backbone's sigma is what it says; None
+    where no clip has one) (None without depth ground truth)."""
+    rows = np.array([(e.columns["base"].scale_fit / e.columns["base"].scale_depth,
+                      e.result.base.traj_depth_sigma if e.result is not None else 0.0) for e in evals
+                     if "base" in e.columns and e.columns["base"].scale_depth > 0]).reshape(-1, 2)
+    rows = rows[np.isfinite(rows[:, 0]) & (rows[:, 0] > 0)]
+    if not len(rows):
         return None
+    ratio, sigma = rows.T
+    z = np.log(ratio[sigma > 0]) / sigma[sigma > 0]
     return {"clips": int(ratio.size), "median": float(np.median(ratio)),
-            "apart": int((np.abs(ratio - 1.0) > SCALE_OUTLIER).sum())}
+            "apart": int((np.abs(ratio - 1.0) > SCALE_OUTLIER).sum()),
+            "sigmas": float(1.4826 * np.median(np.abs(z - np.median(z)))) if z.size else None}
 
 
 def format_outliers(outliers: dict) -> str:

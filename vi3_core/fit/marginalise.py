@@ -19,7 +19,9 @@ def marginalise(fit: MetricFit, result: FitResult, drop: int,
     their visual rows, the velocity ties and scale links up to clip ``drop`` and ``priors`` (the bias priors are left
     out: every fit adds its own), linearised at ``result`` and reduced by the Schur complement, as a Gaussian prior in
     clip ``drop``'s first body frame for the window that starts there. Clip ``drop``'s scale is in it through the scale
-    link to clip drop-1 (nothing without one): the scale chain goes on past the window."""
+    link to clip drop-1 (nothing without one): the scale chain goes on past the window. That link's row carries clip
+    ``drop``'s trajectory against its depth (``FitClip.traj_depth_sigma``), which the next window's link from it
+    carries again: the prior does not keep their correlation, so the chain counts that term twice, on the safe side."""
     if not 0 < drop < fit.K:
         raise ValueError(f"marginalise: drop must be in 1..{fit.K - 1}, got {drop}")
     L = fit.layout

@@ -56,11 +56,14 @@ from vi3_core.preintegration import Preintegration
 @dataclass(frozen=True)
 class FitClip:
     """One clip for the fit: stamps [n] s; T_wc [n,4,4] its backbone camera poses in its first camera frame (model
-    units); sigma_v: its visual noise (model units, per axis), or None to estimate it (single-clip fits only)."""
+    units); sigma_v: its visual noise (model units, per axis), or None to estimate it (single-clip fits only);
+    traj_depth_sigma: the 1-sigma of the log of its trajectory's scale against its depth's (``Geometry``'s; 0: the
+    same scale), what the scale links (depth) and its visual rows (trajectory) may disagree by."""
 
     stamps: np.ndarray
     T_wc: np.ndarray
     sigma_v: float | None = None
+    traj_depth_sigma: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -173,9 +176,11 @@ class MetricFit:
         if scale_links and len(scale_links) != len(clips) - 1:
             raise ValueError(f"MetricFit: {len(scale_links)} scale links for {len(clips)} clips (need one per pair)")
         self.clips, self.noise, self.G, self.K = clips, noise, gravity_norm, len(clips)
-        # the scale links as (k, log ratio, sigma): a residual (log lam_k - log lam_(k-1) - log ratio) / sigma each
+        # the scale links as (k, log ratio, sigma): residuals log lam_k - log lam_(k-1) - log ratio, whitened together
+        # (``_links_whitener``: their own sigmas and the clips' trajectories against their depth)
         self.scale_links = [(k, link.log_ratio, link.sigma) for k, link in enumerate(scale_links, start=1)
                             if link is not None]
+        self._links_whitener = _links_whitener(self.scale_links, [c.traj_depth_sigma for c in clips])
         self.bg0 = pre.bg
         self.bg_sigma = max(float(bg_sigma), noise.gyro_bias_sigma)
         T_BC = np.asarray(T_BC, dtype=np.float64)
@@ -279,12 +284,16 @@ class MetricFit:
                 A_l[k - 1, :, L.dphi(k - 1)] = w[k - 1] * hat_dbeta[k - 1]
                 rows[f"link {k}"] = range(r0 + 3 * (k - 1), r0 + 3 * k)
             r0 += 3 * (K - 1)
-        for k, log_ratio, sigma in self.scale_links:  # the scale chain through shared frames
+        first_scale = r0
+        for k, log_ratio, _ in self.scale_links:  # the scale chain through shared frames
             lam1, lam0 = abs(s.lam[k]), abs(s.lam[k - 1])
-            y[r0] = (math.log(lam1) - math.log(lam0) - log_ratio) / sigma
-            A[r0, L.lam(k)], A[r0, L.lam(k - 1)] = 1.0 / (lam1 * sigma), -1.0 / (lam0 * sigma)
+            y[r0] = math.log(lam1) - math.log(lam0) - log_ratio
+            A[r0, L.lam(k)], A[r0, L.lam(k - 1)] = 1.0 / lam1, -1.0 / lam0
             rows[f"scale {k}"] = range(r0, r0 + 1)
             r0 += 1
+        if self.scale_links:  # lower triangular: link j's row is its innovation given the links before it
+            y[first_scale:r0] = self._links_whitener @ y[first_scale:r0]
+            A[first_scale:r0] = self._links_whitener @ A[first_scale:r0]
         # ba ~ N(0, accel_bias_sigma^2), bg ~ N(bg0, bg_sigma^2), td ~ N(0, time_offset_sigma^2)
         y[r0:r0 + 3], y[r0 + 3:r0 + 6] = s.ba / self.noise.accel_bias_sigma, dbg / self.bg_sigma
         y[r0 + 6] = s.td / self.noise.time_offset_sigma
@@ -607,6 +616,21 @@ class MetricFit:
                          dof=np.array(dof), variance_factor=vf, cov=cov * vf, tangent=B, converged=converged,
                          link_chi2=np.array(link_chi2), link_dof=np.array(link_dof), scale_chi2=scale_chi2,
                          scale_dof=scale_dof)
+
+
+def _links_whitener(scale_links: list[tuple[int, float, float]], traj_depth_sigma: Sequence[float]) -> np.ndarray:
+    """W [l,l] lower triangular with W C W^T = I for the covariance C of the scale links' residuals
+    log lam_k - log lam_(k-1) - log_ratio (``MetricFit._model``): lam is what each clip's trajectory says, the links
+    measure depth, and clip k's trajectory is at its depth's scale times exp(u_k), u_k ~ N(0, tau_k^2) (tau:
+    ``traj_depth_sigma``), so link k carries u_k - u_(k-1) beside its own sigma: var sigma_k^2 + tau_k^2 +
+    tau_(k-1)^2, and -tau_k^2 with link k+1, which shares clip k (a random effect per clip: consecutive links'
+    errors cancel along a chain, a clip's own trajectory scale keeps its u_k)."""
+    k = np.array([j for j, _, _ in scale_links], dtype=int)
+    tau2 = np.asarray(traj_depth_sigma, np.float64) ** 2
+    C = np.diag(np.array([sigma for _, _, sigma in scale_links]) ** 2 + tau2[k] + tau2[k - 1])
+    i = np.flatnonzero(k[1:] == k[:-1] + 1)  # links i and i + 1 share clip k[i]
+    C[i, i + 1] = C[i + 1, i] = -tau2[k[i]]
+    return solve_triangular(np.linalg.cholesky(C), np.eye(len(k)), lower=True)
 
 
 @dataclass(frozen=True)

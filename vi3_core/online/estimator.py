@@ -43,7 +43,9 @@ class OnlineDecision:
     output; None before the clip was seen), whether the clip ``joined`` the window, the scale ``link`` to the clip
     before it that the window fit used (None: none) and ``link_note``, what became of a link otherwise; ``scale_p``:
     the p-value of the clip's own scale against the window's (``scale_agreement``; NaN where it was not tested);
-    ``levels``: the noise levels (IMU, visual) learnt so far (``Window.levels``; empty where not estimated)."""
+    ``levels``: the noise levels (IMU, visual) learnt so far (``Window.levels``; empty where not estimated);
+    ``traj_depth_sigma``: the backbone's 1-sigma of the clip's trajectory scale against its depth's (``Geometry``;
+    0: it does not say), which bounds what the window's links can tell of the clip's trajectory."""
 
     window: int = 0
     span_s: float = 0.0
@@ -56,6 +58,7 @@ class OnlineDecision:
     link_note: str = ""
     scale_p: float = float("nan")
     levels: tuple[float, ...] = ()
+    traj_depth_sigma: float = 0.0
 
     @property
     def earned(self) -> str:
@@ -71,6 +74,8 @@ class OnlineDecision:
             parts.append(f"link: {self.link_note}")
         if math.isfinite(self.scale_p):
             parts.append(f"own scale agrees: p = {self.scale_p:.2g}")
+        if self.traj_depth_sigma > 0:
+            parts.append(f"trajectory against depth +- {100 * self.traj_depth_sigma:.2g} %")
         if self.levels:
             parts.append("noise levels: IMU {:.2g}, visual {:.2g}".format(*self.levels))
         parts += [f"{name} rejected: {why}" for name, why in sorted(self.rejected.items())]
@@ -265,7 +270,7 @@ class OnlineEstimator:
         t1, t_end = float(clip.stamps[0]), float(clip.stamps[-1])
         self._pending = t1
         decision = OnlineDecision(window=len(self.window), span_s=self.window.span_s,
-                                  prior=self.window.prior is not None)
+                                  prior=self.window.prior is not None, traj_depth_sigma=geometry.traj_depth_sigma)
         if free.status is InitStatus.REJECTED:  # bad data or a backbone failure: the window goes on without it
             return self._decide(free, replace(decision, rejected={"clip": free.reason}), free)
         bg, bg_sigma = self._filtered_bg(t1, free.bg)
@@ -288,7 +293,8 @@ class OnlineEstimator:
         sure = own.lam > 0 and np.isfinite(own.scale_rel_sigma)  # else the window starts it from its neighbour
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
                         sigma_v=own.sigma_v, lam=own.lam if sure else float("nan"),
-                        v=np.asarray(own.v1) if sure else np.full(3, np.nan), g=np.asarray(free.g), link=measured)
+                        v=np.asarray(own.v1) if sure else np.full(3, np.nan), g=np.asarray(free.g), link=measured,
+                        traj_depth_sigma=geometry.traj_depth_sigma)
         reset, self._reset = self._restart_reason(t1, t_end) or self._reset, ""
         if reset:
             gap = t1 - (self._last_start if self._last_start is not None else t1)
@@ -338,7 +344,8 @@ class OnlineEstimator:
         span = members_span(sol.members)
         decision = OnlineDecision(window=k + 1, span_s=span, prior=bool(sol.priors), reset=reset, joined=True,
                                   link=measured, link_note=link_note, scale_p=p_scale,
-                                  levels=tuple(self.window.levels) if self.window.noise_levels else ())
+                                  levels=tuple(self.window.levels) if self.window.noise_levels else (),
+                                  traj_depth_sigma=geometry.traj_depth_sigma)
         g_k, v_k = sol.frame_state(k)
         s, rel = float(res.scale[k]), float(res.scale_rel_sigma[k])
         g_sigma, v_sigma = res.state_sigma(k)
@@ -353,8 +360,11 @@ class OnlineEstimator:
         # went off to lam -> 0, v -> 1e6 m/s, where the linearisation gave that absurd scale a 3 % sigma.
         passes = s > 0.0 and rel <= io.max_scale_sigma
         if not passes or not (k or free.ok):
+            tds = geometry.traj_depth_sigma
             why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > max_scale_sigma "
-                   f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s)" if not passes else
+                   f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s"
+                   + (f"; the clip's trajectory against its depth +- {100 * tds:.2g} %" if tds > 0 else "") + ")"
+                   if not passes else
                    f"a window of one clip claims only what the clip's own initialisation does ({free.reason})")
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, fit=fit,
                                            diagnostics=diag), decision, free)

@@ -41,7 +41,8 @@ class Member:
     """A clip in the window: stamps [n] s; T_wc [n,4,4] backbone camera poses in its first camera frame (model units);
     sigma_v: its visual noise (model units, per axis, from its own fit); its latest estimates in its own first body
     frame: lam (1 / scale; NaN: none yet), v [3] m/s, g [3] m/s^2; and its scale link (None: unlinked) to the clip
-    that started at ``link.clip_start`` s, which the fit uses when that clip is the member before it."""
+    that started at ``link.clip_start`` s, which the fit uses when that clip is the member before it;
+    traj_depth_sigma: its ``Geometry``'s (``FitClip``)."""
 
     stamps: np.ndarray
     T_wc: np.ndarray
@@ -50,6 +51,7 @@ class Member:
     v: np.ndarray
     g: np.ndarray
     link: MeasuredLink | None = None
+    traj_depth_sigma: float = 0.0
 
 
 def members_span(members: list[Member]) -> float:
@@ -120,7 +122,7 @@ class Window:
         """Fit the members and ``new`` (last) with the prior; ``imu`` must cover them all. The starting point is each
         member's latest estimate (the new clip's own fit for it), gravity from the first member."""
         members = [*self.members, new]
-        clips = [FitClip(m.stamps, m.T_wc, m.sigma_v) for m in members]
+        clips = [FitClip(m.stamps, m.T_wc, m.sigma_v, m.traj_depth_sigma) for m in members]
         stamps = fit_stamps(clips)
         pre = preintegrate(imu.window(float(stamps[0]), float(stamps[-1])), stamps, bg, jacobians=True)
         links = [m.link.link if m.link is not None and m.link.clip_start == float(prev.stamps[0]) else None

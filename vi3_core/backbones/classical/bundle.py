@@ -1,7 +1,8 @@
 """Bundle adjustment of a short clip: Levenberg-Marquardt with analytic Jacobians and a Schur complement.
 
 Minimises the Huber-robust pixel reprojection error over the poses of frames 1..n-1 and the 3D points (frame 0
-fixed as the gauge; the free scale gauge is damped by LM and normalised by the caller), with the gyro's rotations,
+fixed as the gauge; the free scale gauge is damped by LM and normalised by the caller), and says how well the result
+fixes its trajectory's scale against its depth's (``_trajectory_depth_sigma``), with the gyro's rotations,
 where given, as a prior on every frame's rotation up to a correction of the gyro bias within its estimate's sigma
 (``GyroRotations``). Over a short clip that mostly turns, the images alone trade translation for rotation below what
 a gyro check sees (on a handheld render the trajectory's scale came out a median 18 % short of the depth's, by up to
@@ -14,11 +15,26 @@ their own.
 
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import numpy as np
 import torch
 
 from vi3_core import so3
 from vi3_core.backbones.base import GyroRotations
+
+
+class Adjusted(NamedTuple):
+    """``bundle_adjust``'s result: R_wc [n,3,3], t_wc [n,3] camera-to-world, points [m,3] (NaN: left out), the gyro
+    bias [3] rad/s the rotations fit (None without the prior) and ``traj_depth_sigma``, the 1-sigma of the log of
+    the trajectory's scale against the depth's (``_trajectory_depth_sigma``; NaN: not computed)."""
+
+    R_wc: np.ndarray
+    t_wc: np.ndarray
+    points: np.ndarray
+    bias: np.ndarray | None
+    traj_depth_sigma: float
 
 
 def _residuals(R_cw, t_cw, X, uv, vis, K):
@@ -54,6 +70,125 @@ class _GyroPrior:
         """The prior's share of the bundle adjustment's cost."""
         return 0.5 * (float(self.w @ (self.residual(R_cw, d) ** 2).sum(1)) + self.w_bias * float(d @ d))
 
+    def normal(self, R_cw: torch.Tensor, d: np.ndarray):
+        """The prior's share of the normal equations: Hcc [n-1,6,6] and bc [n-1,6] to add to the cameras' (its
+        rotation blocks), and the bias correction's Hcb [n-1,6,3], Hbb [3,3], bb [3] (d e_i / d(dw_i) = I,
+        d e_i / d d = R_cw_i A_i to first order)."""
+        f64 = R_cw.dtype
+        e, wp = torch.from_numpy(self.residual(R_cw, d)), torch.from_numpy(self.w)
+        B = R_cw[1:] @ torch.from_numpy(self.A)
+        Hcc, bc = torch.zeros(len(wp), 6, 6, dtype=f64), torch.zeros(len(wp), 6, dtype=f64)
+        Hcc[:, :3, :3] = wp[:, None, None] * torch.eye(3, dtype=f64)
+        bc[:, :3] = wp[:, None] * e
+        Hcb = torch.zeros(len(wp), 6, 3, dtype=f64)
+        Hcb[:, :3] = wp[:, None, None] * B
+        Hbb = torch.einsum("n,nji,njk->ik", wp, B, B) + self.w_bias * torch.eye(3, dtype=f64)
+        bb = torch.einsum("n,nji,nj->i", wp, B, e) + self.w_bias * torch.from_numpy(d)
+        return Hcc, bc, Hcb, Hbb, bb
+
+
+def _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K, huber_px):
+    """The reprojection error's Gauss-Newton normal equations at cameras R_cw [n,3,3], t_cw [n,3] with camera-frame
+    points Xc [m,n,3], depths z and residuals r (``_residuals``), Huber-weighted at ``huber_px`` (1 px: unit weight):
+    the weights w [m,n] and the blocks Hcc [n-1,6,6], Hll [m,3,3], Hcl [m,n-1,6,3], bc [n-1,6], bl [m,3] of cameras
+    1..n-1 (rotation, then translation: left perturbations) and points (frame 0 is the gauge)."""
+    # Jp = d(pixel)/d(Xc) [m,n,2,3]; the left perturbation Xc' = exp(dw) R X + t + dt gives d/d(dw) = -Jp hat(R X)
+    # (row-wise (R X) x Jp) and d/d(dt) = Jp; d/dX = Jp R.
+    fx, fy = K[0, 0], K[1, 1]
+    w = torch.where(vis, (huber_px / r.norm(dim=-1).clamp_min(1e-12)).clamp_max(1.0), 0.0)
+    Jp = torch.zeros(Xc.shape[:2] + (2, 3), dtype=Xc.dtype)
+    Jp[..., 0, 0], Jp[..., 1, 1] = fx / z, fy / z
+    Jp[..., 0, 2], Jp[..., 1, 2] = -fx * Xc[..., 0] / z**2, -fy * Xc[..., 1] / z**2
+    Jc = torch.cat([torch.linalg.cross((Xc - t_cw)[..., None, :].expand_as(Jp), Jp), Jp], -1)
+    Jl = torch.einsum("mnri,nij->mnrj", Jp, R_cw)
+    WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
+    Hcc = torch.einsum("mnri,mnrj->nij", WJc[:, 1:], Jc[:, 1:])  # [n-1,6,6]
+    Hll = torch.einsum("mnri,mnrj->mij", WJl, Jl)  # [m,3,3]
+    # Sums of outer products over the two residual rows, written out (batched 6x2 @ 2x3 products are slow).
+    Hcl = torch.addcmul(WJc[:, 1:, 0, :, None] * Jl[:, 1:, 0, None, :], WJc[:, 1:, 1, :, None],
+                        Jl[:, 1:, 1, None, :])  # [m,n-1,6,3]
+    bc = torch.einsum("mnri,mnr->ni", WJc[:, 1:], r[:, 1:])
+    bl = torch.einsum("mnri,mnr->mi", WJl, r)
+    return w, Hcc, Hll, Hcl, bc, bl
+
+
+def _reduced(Hcc: torch.Tensor, Hll_inv: torch.Tensor, Hcl: torch.Tensor,
+             bias: tuple[torch.Tensor, torch.Tensor] | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The reduced camera system M [6(n-1)+nb]^2 once the points are eliminated (their inverse blocks Hll_inv
+    [m,3,3]), with the bias correction's unknowns last where ``bias`` = (Hcb [n-1,6,3], Hbb [3,3]) is given (no point
+    depends on them), and Y = Hcl Hll^-1 [m,n-1,6,3] (for the right-hand side and the points' back-substitution)."""
+    c = Hcc.shape[0]
+    Y = torch.bmm(Hcl.reshape(len(Hcl), -1, 3), Hll_inv).view(Hcl.shape)
+    # Schur complement S = Hcc - sum_m Y_m Hcl_m^T as one matrix product over (point, point coordinate).
+    S = -(Y.permute(1, 2, 0, 3).reshape(6 * c, -1) @ Hcl.permute(1, 2, 0, 3).reshape(6 * c, -1).T)
+    S = S.view(c, 6, c, 6)
+    S[torch.arange(c), :, torch.arange(c), :] += Hcc
+    if bias is None:
+        return S.reshape(6 * c, 6 * c), Y
+    Hcb, Hbb = bias
+    M = torch.zeros(6 * c + 3, 6 * c + 3, dtype=Hcc.dtype)
+    M[:-3, :-3] = S.reshape(6 * c, -1)
+    M[:-3, -3:] = Hcb.reshape(-1, 3)
+    M[-3:, :-3] = Hcb.reshape(-1, 3).T
+    M[-3:, -3:] = Hbb
+    return M, Y
+
+
+def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Tensor, z: torch.Tensor,
+                            r: torch.Tensor, vis: torch.Tensor, pixel: tuple, prior: tuple | None) -> float:
+    """The 1-sigma of log(trajectory scale / depth scale) of the adjusted clip (cameras R_cw [n,3,3], t_cw [n,3],
+    camera-frame points Xc [m,n,3], depths z, residuals r, ``_residuals``'), from the normal equations of the last
+    linearisation (``pixel``: w, Hcc, Hll, Hcl of ``_pixel_normal``; ``prior``: Hcc, Hcb, Hbb of
+    ``_GyroPrior.normal``, or None; a step before the end at most, where the step was within the tolerance).
+
+    q = q_t - q_d, q_t the least-squares scale change of the camera centres about their mean and q_d the mean relative
+    change of the observed depths. Both move alike with the scale gauge, so q is defined by the images (and the gyro)
+    alone, and its variance g^T H^+ g comes from the Gauss-Newton information H at the pixel noise the residuals show
+    (Huber-weighted, dof-corrected) plus the prior's. A clip that mostly turns has it large: its images cannot say how
+    far the camera moved against how far the scene is, and the metric fit (which reads the trajectory) and the scale
+    links (which read the depth) then see different scales. NaN where it cannot be computed: fewer than 3 frames, no
+    degrees of freedom left, or a frame that no point constrains (its centre is free)."""
+    n, m = R_cw.shape[0], Xc.shape[0]
+    f64 = Xc.dtype
+    w, Hcc, Hll, Hcl = pixel
+    obs = int(vis.sum())
+    dof = 2 * obs - 6 * (n - 1) - 3 * m
+    if n < 3 or dof <= 0 or bool((Hcc.diagonal(dim1=1, dim2=2)[:, 3:] <= 0).any()):
+        return float("nan")
+    var_px = float((w * (r**2).sum(-1)).sum()) / dof
+    Hcc, Hll, Hcl = Hcc / var_px, Hll / var_px, Hcl / var_px
+    bias = None
+    if prior is not None:
+        Hp, Hcb, Hbb = prior
+        Hcc, bias = Hcc + Hp, (Hcb, Hbb)
+    # q's gradient: centres c_i = -R_i^T t_i about their mean p_i move by -R_i^T (dt_i - dw_i x t_i); depths by
+    # e_z . (dw_i x P + dt_i + R_i dX_m) with P = R_i X_m.
+    c = -(R_cw.transpose(1, 2) @ t_cw[..., None])[..., 0]
+    p = c - c.mean(0)
+    Rp = (R_cw @ p[..., None])[..., 0][1:]
+    spread = float((p**2).sum())
+    inv_z = torch.where(vis, 1.0 / z, 0.0) / obs  # [m,n]
+    e_z = torch.tensor([0.0, 0.0, 1.0], dtype=f64)
+    P = Xc - t_cw
+    gc = torch.zeros(n - 1, 6, dtype=f64)
+    gc[:, :3] = torch.linalg.cross(t_cw[1:], Rp) / spread - torch.einsum(
+        "mn,mni->ni", inv_z, torch.linalg.cross(P, e_z.expand_as(P)))[1:]
+    gc[:, 3:] = -Rp / spread - inv_z.sum(0)[1:, None] * e_z
+    gl = -torch.einsum("mn,ni->mi", inv_z, R_cw[:, 2, :])
+    # the scale gauge: a rank-one term on a camera's translation along itself (q is blind to the gauge)
+    j = int(torch.argmax(t_cw[1:].norm(dim=-1)))
+    u = torch.zeros(n - 1, 6, dtype=f64)
+    u[j, 3:] = t_cw[1 + j] / t_cw[1 + j].norm()
+    Hll_inv = _inv3(Hll + 1e-9 * torch.eye(3, dtype=f64))
+    M, Y = _reduced(Hcc, Hll_inv, Hcl, bias)
+    u = u.reshape(-1)
+    M[:len(u), :len(u)] += float(M.diagonal().abs().mean()) * torch.outer(u, u)
+    rhs = (gc - torch.einsum("maij,mj->ai", Y, gl)).reshape(-1)
+    if bias is not None:
+        rhs = torch.cat([rhs, torch.zeros(3, dtype=f64)])
+    var = float(torch.einsum("mi,mij,mj->", gl, Hll_inv, gl)) + float(rhs @ torch.linalg.solve(M, rhs))
+    return math.sqrt(var) if var >= 0 and math.isfinite(var) else float("nan")
+
 
 def _inv3(A: torch.Tensor) -> torch.Tensor:
     """Inverses [...,3,3] of invertible 3x3 matrices A [...,3,3] by the adjugate (elementwise, no LAPACK call)."""
@@ -67,11 +202,10 @@ def _inv3(A: torch.Tensor) -> torch.Tensor:
 def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
                   K: np.ndarray, *, iterations: int = 20, huber_px: float = 1.0, tol: float = 1e-4,
                   gyro: GyroRotations | None = None,
-                  gyro_sigma: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+                  gyro_sigma: float = 0.0) -> Adjusted:
     """Refine camera-to-world poses R_wc [n,3,3], t_wc [n,3] and points [m,3] (NaN rows are left out) against
     the observations uv [m,n,2] (pixels, where ``visible`` [m,n]), with ``gyro`` (its R_wc in the same world, the first
-    camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0. Returns the refined
-    (R_wc, t_wc, points) and the gyro bias (rad/s) the rotations fit (None without the prior)."""
+    camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0 (``Adjusted``)."""
     n = len(R_wc)
     pid = np.flatnonzero(np.isfinite(points[:, 0]))
     f64 = torch.float64
@@ -79,66 +213,32 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     obs = torch.as_tensor(np.nan_to_num(uv[pid]), dtype=f64)
     vis = torch.as_tensor(visible[pid])
     K_t = torch.as_tensor(K, dtype=f64)
-    fx, fy = float(K[0, 0]), float(K[1, 1])
     R_cw = torch.as_tensor(R_wc, dtype=f64).transpose(1, 2).contiguous()
     t_cw = -(R_cw @ torch.as_tensor(t_wc, dtype=f64)[..., None])[..., 0]
     eye6, eye3 = torch.eye(6, dtype=f64), torch.eye(3, dtype=f64)
     prior = _GyroPrior(gyro, gyro_sigma) if gyro is not None and gyro_sigma > 0 and n > 1 else None
     d = np.zeros(3)
-    nb = 3 if prior is not None else 0  # the bias correction's unknowns, after the cameras'
     lam = 1e-3
     Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K_t)
     cost = _cost(r, vis, huber_px) + (prior.cost(R_cw, d) if prior else 0.0)
     linearise = True
     for _ in range(iterations):
         if linearise:
-            # Huber weights; Jacobians: Jp = d(pixel)/d(Xc) [m,n,2,3]; left perturbation Xc' = exp(dw) R X + t + dt
-            # gives d/d(dw) = -Jp hat(R X) (row-wise (R X) x Jp) and d/d(dt) = Jp; d/dX = Jp R.
-            w = torch.where(vis, (huber_px / r.norm(dim=-1).clamp_min(1e-12)).clamp_max(1.0), 0.0)
-            Jp = torch.zeros(Xc.shape[:2] + (2, 3), dtype=f64)
-            Jp[..., 0, 0], Jp[..., 1, 1] = fx / z, fy / z
-            Jp[..., 0, 2], Jp[..., 1, 2] = -fx * Xc[..., 0] / z**2, -fy * Xc[..., 1] / z**2
-            Jc = torch.cat([torch.linalg.cross((Xc - t_cw)[..., None, :].expand_as(Jp), Jp), Jp], -1)
-            Jc[:, 0] = 0.0  # frame 0 is the gauge
-            Jl = torch.einsum("mnri,nij->mnrj", Jp, R_cw)
-            WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
-            Hcc = torch.einsum("mnri,mnrj->nij", WJc, Jc)[1:]  # [n-1,6,6]
-            Hll = torch.einsum("mnri,mnrj->mij", WJl, Jl)  # [m,3,3]
-            # Sums of outer products over the two residual rows, written out (batched 6x2 @ 2x3 products are slow).
-            Hcl = torch.addcmul(WJc[:, 1:, 0, :, None] * Jl[:, 1:, 0, None, :], WJc[:, 1:, 1, :, None],
-                                Jl[:, 1:, 1, None, :])  # [m,n-1,6,3]
-            bc = torch.einsum("mnri,mnr->ni", WJc, r)[1:]
-            bl = torch.einsum("mnri,mnr->mi", WJl, r)
-            if prior is not None:  # d e_i / d(dw_i) = I, d e_i / d d = R_cw_i A_i (first order)
-                e, wp = torch.from_numpy(prior.residual(R_cw, d)), torch.from_numpy(prior.w)
-                B = R_cw[1:] @ torch.from_numpy(prior.A)
-                Hcc[:, :3, :3] += wp[:, None, None] * eye3
-                bc[:, :3] += wp[:, None] * e
-                Hcb = torch.zeros(n - 1, 6, 3, dtype=f64)
-                Hcb[:, :3] = wp[:, None, None] * B
-                Hbb = torch.einsum("n,nji,njk->ik", wp, B, B) + prior.w_bias * eye3
-                bb = torch.einsum("n,nji,nj->i", wp, B, e) + prior.w_bias * torch.from_numpy(d)
+            w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px)
+            pixel, priors = (w, Hcc, Hll, Hcl), None
+            if prior is not None:
+                Hp, bp, Hcb, Hbb, bb = prior.normal(R_cw, d)
+                Hcc, bc, priors = Hcc + Hp, bc + bp, (Hp, Hcb, Hbb)
         diag = Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
         # a camera no point constrains any more (a long clip's frame whose points were all cleaned out) stays put
         Hcc_d = Hcc + lam * eye6 * diag + eye6 * (diag == 0)
         Hll_inv = _inv3(Hll + lam * eye3 * Hll.diagonal(dim1=1, dim2=2)[:, :, None] + 1e-9 * eye3)
-        Y = torch.bmm(Hcl.reshape(len(Hcl), -1, 3), Hll_inv).view(Hcl.shape)  # Hcl Hll^-1 [m,n-1,6,3]
-        # Schur complement S = Hcc - sum_m Y_m Hcl_m^T as one matrix product over (point, point coordinate).
-        S = -(Y.permute(1, 2, 0, 3).reshape(6 * (n - 1), -1) @ Hcl.permute(1, 2, 0, 3).reshape(6 * (n - 1), -1).T)
-        S = S.view(n - 1, 6, n - 1, 6)
-        S[torch.arange(n - 1), :, torch.arange(n - 1), :] += Hcc_d
+        M, Y = _reduced(Hcc_d, Hll_inv, Hcl, None if prior is None else
+                        (Hcb, Hbb + lam * torch.diag(Hbb.diagonal())))
         rhs = (-bc + torch.einsum("maij,mj->ai", Y, bl)).reshape(-1)
-        if prior is not None:  # the bias correction joins the reduced system: no point depends on it
-            M = torch.zeros(6 * (n - 1) + nb, 6 * (n - 1) + nb, dtype=f64)
-            M[:-nb, :-nb] = S.reshape(6 * (n - 1), -1)
-            M[:-nb, -nb:] = Hcb.reshape(-1, nb)
-            M[-nb:, :-nb] = Hcb.reshape(-1, nb).T
-            M[-nb:, -nb:] = Hbb + lam * torch.diag(Hbb.diagonal())
-            rhs = torch.cat([rhs, -bb])
-            sol = torch.linalg.solve(M, rhs)
-            dc, dd = sol[:-nb].reshape(n - 1, 6), sol[-nb:].numpy()
-        else:
-            dc, dd = torch.linalg.solve(S.reshape(6 * (n - 1), -1), rhs).reshape(n - 1, 6), None
+        sol = torch.linalg.solve(M, rhs if prior is None else torch.cat([rhs, -bb]))
+        dc = sol[:6 * (n - 1)].reshape(n - 1, 6)
+        dd = sol[6 * (n - 1):].numpy()
         dl = -torch.einsum("mij,mj->mi", Hll_inv, bl + torch.einsum("maji,aj->mi", Hcl, dc))
         R_new, t_new = R_cw.clone(), t_cw.clone()
         R_new[1:] = torch.from_numpy(so3.exp(dc[:, :3].numpy())) @ R_cw[1:]
@@ -159,5 +259,6 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     R_out = R_cw.transpose(1, 2)
     out = np.full_like(points, np.nan)
     out[pid] = X.numpy()
-    bias = gyro.bg + d if prior is not None else None
-    return R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out, bias
+    return Adjusted(R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out,
+                    gyro.bg + d if prior is not None else None,
+                    _trajectory_depth_sigma(R_cw, t_cw, Xc, z, r, vis, pixel, priors))

@@ -229,10 +229,12 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = 
     points = triangulate(uv, visible, R_wc, t_wc, K)
     points = _clean_points(np.where(np.isfinite(points[:, :1]), points, carried), uv, visible, R_wc, t_wc, K, **final)
     if bundle_adjust:
-        R_wc, t_wc, points, bias = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations, gyro=gyro,
-                                          gyro_sigma=gyro_sigma)
-        if bias is not None:
-            diag["gyro_bias"] = bias.tolist()
+        adjusted = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations, gyro=gyro,
+                          gyro_sigma=gyro_sigma)
+        R_wc, t_wc, points = adjusted.R_wc, adjusted.t_wc, adjusted.points
+        if adjusted.bias is not None:
+            diag["gyro_bias"] = adjusted.bias.tolist()
+        diag["traj_depth_sigma"] = adjusted.traj_depth_sigma
         points = _clean_points(points, uv, visible, R_wc, t_wc, K, **final)
     good = np.isfinite(points[:, 0])
     proj, _ = project(points[good], R_wc, t_wc, K)
