@@ -239,6 +239,9 @@ def test_a_camera_no_point_constrains_is_left_where_it_was():
     R_out, t_out, _, bias, traj_depth_sigma = bundle_adjust(R_wc, t_start, points, uv, visible, K)
     assert bias is None  # no gyro prior
     assert np.isnan(traj_depth_sigma)  # that camera's centre is free: no sigma of the trajectory against the depth
+    unchanged = bundle_adjust(R_wc, t_start, points, uv, visible, K, iterations=0)  # no iteration: the input back
+    np.testing.assert_allclose(unchanged.t_wc, t_start, atol=1e-12)
+    assert np.isnan(unchanged.traj_depth_sigma)
     np.testing.assert_allclose(t_out[-1], t_start[-1], atol=1e-12)
     np.testing.assert_allclose(R_out[-1], R_wc[-1], atol=1e-12)
     assert np.abs(t_out[1:-1] - t_wc[1:-1]).max() < np.abs(t_start[1:-1] - t_wc[1:-1]).max()

@@ -222,6 +222,7 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K_t)
     cost = _cost(r, vis, huber_px) + (prior.cost(R_cw, d) if prior else 0.0)
     linearise = True
+    pixel = priors = None  # the last linearisation's blocks, for the sigma (none without an iteration)
     for _ in range(iterations):
         if linearise:
             w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px)
@@ -261,4 +262,5 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     out[pid] = X.numpy()
     return Adjusted(R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out,
                     gyro.bg + d if prior is not None else None,
-                    _trajectory_depth_sigma(R_cw, t_cw, Xc, z, r, vis, pixel, priors))
+                    _trajectory_depth_sigma(R_cw, t_cw, Xc, z, r, vis, pixel, priors) if pixel is not None
+                    else float("nan"))
