@@ -106,7 +106,7 @@ def trajectory_vs_depth(evals: Sequence[ClipEval]) -> dict | None:
     backbone's own ``traj_depth_sigma`` of each clip that has one (1 where the backbone's sigma is what it says; None
     where no clip has one) (None without depth ground truth)."""
     rows = np.array([(e.columns["base"].scale_fit / e.columns["base"].scale_depth,
-                      e.result.base.traj_depth_sigma if e.result is not None else 0.0) for e in evals
+                      e.traj_depth_sigma or 0.0) for e in evals
                      if "base" in e.columns and e.columns["base"].scale_depth > 0]).reshape(-1, 2)
     rows = rows[np.isfinite(rows[:, 0]) & (rows[:, 0] > 0)]
     if not len(rows):

@@ -58,6 +58,12 @@ class ClipEval:
             return 1.0 / self.exact_scale
         return self.columns["base"].scale_fit if "base" in self.columns else float("nan")
 
+    @property
+    def traj_depth_sigma(self) -> float | None:
+        """The backbone's 1-sigma of the log of the clip's trajectory scale against its depth's (``Geometry``; 0: it
+        does not say; None where the backbone did not run)."""
+        return self.result.base.traj_depth_sigma if self.result is not None else None
+
     def trajectories(self) -> dict[str, np.ndarray]:
         """Camera trajectories [n,4,4] in C1 by name: "gt", "base", "imu" (the metric IMU target, when the
         init was ok), "init" (fast init result, when refined), "vi3" (the final metric output, when ok); only "gt"

@@ -155,7 +155,7 @@ def summarise(evals: Sequence[ClipEval], *, mode: str, init_source: str = "vi3",
                    "scale_fit": e.columns[mode].scale_fit if mode in e.columns else None,
                    "scale_depth": e.columns[mode].scale_depth if mode in e.columns else None,
                    "scale_rel_sigma": rel_sigma(e),
-                   "traj_depth_sigma": e.result.base.traj_depth_sigma if e.result is not None else None,
+                   "traj_depth_sigma": e.traj_depth_sigma,
                    "scale_exact": e.init.scale / e.exact_scale if e.ok and e.exact_scale else None,
                    **({"front_end": e.backbone_diagnostics["front_end"]}
                       if e.backbone_diagnostics.get("front_end") else {}),
