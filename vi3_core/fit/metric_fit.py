@@ -371,10 +371,17 @@ class MetricFit:
         return y, A, rows, B
 
     def _decomposed(self, s: FitState, sigma_v: np.ndarray, priors: tuple[GaussianPrior, ...]) -> _Linear:
-        """``linearise`` at ``s`` with the thin SVD of its A."""
+        """``linearise`` at ``s`` with the thin SVD of its A, columns scaled to unit norm first: what counts as
+        undetermined then does not depend on the units of the unknowns. At a scale lam_k near 0 with a velocity v_k
+        near infinity (the clip's motion fitted as lam_k v_k, a constant velocity in model units, where its IMU says
+        nothing of it) lam_k's column is 1e7 times the others' and, unscaled, the cut-off dropped gravity's and the
+        biases' directions: lam_k then read as known to 3 % of itself (a clip of the real recording of
+        docs/accuracy.md, fitted alone, at a scale of 9e7)."""
         y, A, rows, B = self.linearise(s, sigma_v, priors)
-        U, sv, Vt = np.linalg.svd(A, full_matrices=False)
-        return _Linear(y, rows, B, U, sv, Vt)
+        norm = np.linalg.norm(A, axis=0)
+        norm[norm == 0.0] = 1.0
+        U, sv, Vt = np.linalg.svd(A / norm, full_matrices=False)
+        return _Linear(y, rows, B, U, sv, Vt, norm)
 
     def _step(self, s: FitState, dx: np.ndarray, B: np.ndarray) -> FitState:
         L = self.layout
@@ -591,7 +598,7 @@ class MetricFit:
         """The solution at ``s`` from ``lin`` (``_decomposed`` there)."""
         y, rows, B, U, sv, Vt = lin.y, lin.rows, lin.B, lin.U, lin.sv, lin.Vt
         keep = sv > 1e-10 * sv[0]
-        cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep]
+        cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep] / np.outer(lin.norm, lin.norm)
         undetermined = (np.abs(Vt[~keep]) > 1e-6).any(0) if (~keep).any() else np.zeros(self.layout.n, bool)
         leverage = (U[:, keep] ** 2).sum(1)
         vis = [rows[f"vis {k}"] for k in range(self.K)]
@@ -666,7 +673,8 @@ class _Block:
 @dataclass(frozen=True)
 class _Linear:
     """The whitened model at a state (``MetricFit.linearise``): y [m], the row ranges, g's tangent basis B [3,2], and
-    the thin SVD of its A [m,p]: U [m,r], sv [r], Vt [r,p] (r = min(m, p))."""
+    the thin SVD of its A [m,p] with each column divided by its norm [p]: U [m,r], sv [r], Vt [r,p] (r = min(m,
+    p)), A = U diag(sv) Vt diag(norm)."""
 
     y: np.ndarray
     rows: dict[str, range]
@@ -674,6 +682,7 @@ class _Linear:
     U: np.ndarray
     sv: np.ndarray
     Vt: np.ndarray
+    norm: np.ndarray
 
 
 @dataclass(frozen=True)

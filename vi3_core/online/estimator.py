@@ -357,7 +357,8 @@ class OnlineEstimator:
         st = res.state
         # A window of one clip (the stream's first, or a restart) has nothing the clip's own initialisation lacks
         # but the accelerometer-bias prior, and none of its checks: a clip flown at constant velocity fitted alone
-        # went off to lam -> 0, v -> 1e6 m/s, where the linearisation gave that absurd scale a 3 % sigma.
+        # went off to lam -> 0, v -> 1e6 m/s, where the linearisation gave that absurd scale a 3 % sigma (before
+        # ``MetricFit._decomposed`` scaled its columns, which also let a clip's own initialisation claim one).
         passes = s > 0.0 and rel <= io.max_scale_sigma
         if not passes or not (k or free.ok):
             tds = geometry.traj_depth_sigma
