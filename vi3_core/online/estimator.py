@@ -75,13 +75,18 @@ class OnlineDecision:
         if math.isfinite(self.scale_p):
             parts.append(f"own scale agrees: p = {self.scale_p:.2g}")
         if self.traj_depth_sigma > 0:
-            parts.append(f"trajectory against depth +- {100 * self.traj_depth_sigma:.2g} %")
+            parts.append(_traj_depth_text(self.traj_depth_sigma))
         if self.levels:
             parts.append("noise levels: IMU {:.2g}, visual {:.2g}".format(*self.levels))
         parts += [f"{name} rejected: {why}" for name, why in sorted(self.rejected.items())]
         if self.reset:
             parts.append(f"reset: {self.reset}")
         return "; ".join(parts)
+
+
+def _traj_depth_text(sigma: float) -> str:
+    """How a decision and an unobservable clip's reason name the clip's ``traj_depth_sigma`` (relative)."""
+    return f"the clip's trajectory against its depth +- {100 * sigma:.2g} %"
 
 
 def scale_agreement(own: ScaleFit, lam: float, rel_sigma: float) -> tuple[float, float]:
@@ -364,7 +369,7 @@ class OnlineEstimator:
             tds = geometry.traj_depth_sigma
             why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > max_scale_sigma "
                    f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s"
-                   + (f"; the clip's trajectory against its depth +- {100 * tds:.2g} %" if tds > 0 else "") + ")"
+                   + (f"; {_traj_depth_text(tds)}" if tds > 0 else "") + ")"
                    if not passes else
                    f"a window of one clip claims only what the clip's own initialisation does ({free.reason})")
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, fit=fit,
