@@ -222,14 +222,14 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K_t)
     cost = _cost(r, vis, huber_px) + (prior.cost(R_cw, d) if prior else 0.0)
     linearise = True
-    pixel = priors = None  # the last linearisation's blocks, for the sigma (none without an iteration)
+    pixel = prior_blocks = None  # the last linearisation's blocks, for the sigma (none without an iteration)
     for _ in range(iterations):
         if linearise:
             w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px)
-            pixel, priors = (w, Hcc, Hll, Hcl), None
+            pixel, prior_blocks = (w, Hcc, Hll, Hcl), None
             if prior is not None:
                 Hp, bp, Hcb, Hbb, bb = prior.normal(R_cw, d)
-                Hcc, bc, priors = Hcc + Hp, bc + bp, (Hp, Hcb, Hbb)
+                Hcc, bc, prior_blocks = Hcc + Hp, bc + bp, (Hp, Hcb, Hbb)
         diag = Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
         # a camera no point constrains any more (a long clip's frame whose points were all cleaned out) stays put
         Hcc_d = Hcc + lam * eye6 * diag + eye6 * (diag == 0)
@@ -262,5 +262,5 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     out[pid] = X.numpy()
     return Adjusted(R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out,
                     gyro.bg + d if prior is not None else None,
-                    _trajectory_depth_sigma(R_cw, t_cw, Xc, z, r, vis, pixel, priors) if pixel is not None
+                    _trajectory_depth_sigma(R_cw, t_cw, Xc, z, r, vis, pixel, prior_blocks) if pixel is not None
                     else float("nan"))
