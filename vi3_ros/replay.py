@@ -470,11 +470,15 @@ def input_settings(input_path: Path, settings: Settings, *,
 
 
 def input_events(input_path: Path, settings: Settings, image_topic: str | None = None,
-                 imu_topic: str | None = None) -> Iterator[Event]:
-    """The input's events as ``settings`` and the explicit topics choose them (``topic_requests``)."""
+                 imu_topic: str | None = None, on_note: Callable[[str], None] | None = None) -> Iterator[Event]:
+    """The input's events as ``settings`` and the explicit topics choose them (``topic_requests``); ``on_note`` is
+    told where a recording cut short ends (``bag_truncated``), as its drop is fed."""
     image, imu = topic_requests(settings.inputs, image_topic, imu_topic)
-    return iter_events(input_path, image=image, imu=imu, camera_info_topic=settings.inputs.camera_info_topic,
-                       tf_static=settings.inputs.use_tf_static)
+    for event in iter_events(input_path, image=image, imu=imu, camera_info_topic=settings.inputs.camera_info_topic,
+                             tf_static=settings.inputs.use_tf_static):
+        if on_note is not None and isinstance(event, DropEvent) and event.reason == "bag_truncated":
+            on_note(event.detail)
+        yield event
 
 
 def replay(input_path: str | Path, output: str | Path, *, settings: Settings, copy_inputs: bool = False,
@@ -510,7 +514,7 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
             pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=not realtime,
                                      on_report=lambda r: record_report(summary, r), backbone=backbone)
             start = time.perf_counter()  # model loading is not part of the replay's speed
-            feed_pipeline(pipeline, sink, input_events(input_path, settings, image_topic, imu_topic), summary,
+            feed_pipeline(pipeline, sink, input_events(input_path, settings, image_topic, imu_topic, on_note), summary,
                           settings, copy_inputs=copy_inputs, progress=progress, name=input_path.name)
             summary.wall_s = time.perf_counter() - start
             summary.clips = pipeline.buffer.clips
@@ -570,8 +574,8 @@ def replay_rig(input_path: str | Path, *, settings: Settings, progress: bool = T
     pipeline = make_pipeline(settings, sink=sink, types=types, synchronous=True,
                              on_report=lambda r: record_report(summary, r))
     start = time.perf_counter()
-    feed_pipeline(pipeline, sink, input_events(input_path, settings, image_topic, imu_topic), summary, settings,
-                  copy_inputs=False, progress=progress, name=input_path.name)
+    feed_pipeline(pipeline, sink, input_events(input_path, settings, image_topic, imu_topic, on_note), summary,
+                  settings, copy_inputs=False, progress=progress, name=input_path.name)
     summary.wall_s = time.perf_counter() - start
     summary.clips, summary.drops = pipeline.buffer.clips, pipeline.drop_counts
     summary.outcomes = Counter(pipeline.outcomes)

@@ -9,7 +9,9 @@ the image topic's type is read from the recording.
 
 ``iter_events`` never stops at one bad message: a message that cannot be decoded (or an ASL frame whose PNG is
 missing or corrupt) becomes a ``DropEvent`` naming it, as the node drops such a message and goes on; an input it
-cannot read at all (not a bag, truncated, no image topic, an IMU csv that is empty or unsorted) raises DataError.
+cannot read at all (not a bag, a truncated ROS 1 bag, no image topic, an IMU csv that is empty or unsorted) raises
+DataError. An MCAP recording cut short (no summary; a rosbag2 folder without its metadata.yaml, which ros2 bag
+writes when it closes) is read up to where its records end, and a ``DropEvent`` ``bag_truncated`` says so.
 It streams: an ASL folder's IMU csv is read row by row and its ground truth not at all, so memory does not grow
 with the length of the recording.
 
@@ -88,8 +90,9 @@ class TfStaticEvent:
 @dataclass(frozen=True)
 class DropEvent:
     """A message that could not be decoded, dropped: ``reason`` (``image_malformed``, ``image_unsupported``,
-    ``imu_malformed``, ``camera_info_malformed``, ``tf_static_malformed``), its stamp (int ns; None when even the
-    header is unreadable) and ``detail``, a sentence naming the topic or file and the problem."""
+    ``imu_malformed``, ``camera_info_malformed``, ``tf_static_malformed``; ``bag_truncated``: the recording's
+    records end early, the last event), its stamp (int ns; None when even the header is unreadable) and ``detail``,
+    a sentence naming the topic or file and the problem."""
 
     reason: str
     t_ns: int | None
@@ -97,6 +100,10 @@ class DropEvent:
 
 
 Event = ImageEvent | ImuEvent | CameraInfoEvent | TfStaticEvent | DropEvent
+
+
+class BagTruncated(DataError):
+    """A recording whose records end early: what preceded the damage was read, the rest cannot be."""
 
 
 @dataclass(frozen=True)
@@ -139,6 +146,9 @@ def resolve_input(path) -> tuple[Path, str]:
         try:
             find_mav0(path)
         except DataError as err:
+            files = sorted(path.glob("*.mcap"))
+            if len(files) == 1:  # a rosbag2 recording cut short: ros2 bag writes metadata.yaml when it closes
+                return files[0], "mcap"
             raise DataError(f"{err}; nor a rosbag2 directory (no metadata.yaml)") from None
         return path, "asl"
     if not path.exists():
@@ -196,13 +206,19 @@ def _bag_messages(path: Path, kind: str, want: dict[str, TopicRequest]) -> Itera
         return
     from rosbags.highlevel import AnyReader, AnyReaderError
 
+    started = False
     try:
         with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
             chosen = choose_topics(path, {c.topic: full_name(c.msgtype) for c in reader.connections}, want)
             conns = [c for c in reader.connections if c.topic in chosen]
             for conn, _, raw in reader.messages(connections=conns):
+                started = True
                 yield chosen[conn.topic], conn.topic, _deserialize(reader.deserialize, raw, conn.msgtype, conn.topic)
     except AnyReaderError as err:
+        files = sorted(path.glob("*.mcap")) if kind == "rosbag2" else []
+        if len(files) == 1 and not started:  # its MCAP cut short: rosbags reads only a file with its summary
+            yield from _mcap_messages(files[0], want)
+            return
         raise DataError(f"{path}: cannot read the bag (truncated, unindexed or not a bag?): {err}") from err
     except DataError:
         raise
@@ -220,7 +236,8 @@ def _deserialize(fn, raw, msgtype: str, topic: str) -> Any:
 
 
 def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[str, str, Any]]:
-    """A bare .mcap file (no metadata.yaml): the mcap package reads it, the Jazzy typestore decodes CDR."""
+    """A bare .mcap file (no metadata.yaml): the mcap package reads it, the Jazzy typestore decodes CDR. A file
+    without its summary, as a recording cut short leaves it, is read record by record (``_mcap_salvage``)."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
@@ -230,9 +247,13 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
     try:
         with path.open("rb") as f:
             reader = make_reader(f)
-            summary = reader.get_summary()
+            try:
+                summary = reader.get_summary()
+            except (McapError, EOFError, struct.error):  # a file cut short: its end is not a footer
+                summary = None
             if summary is None:
-                raise DataError(f"{path}: MCAP file has no summary section (truncated or unindexed)")
+                yield from _mcap_salvage(path, want)
+                return
             chosen = choose_topics(path, {ch.topic: summary.schemas[ch.schema_id].name
                                           for ch in summary.channels.values()}, want)
             for schema, channel, message in reader.iter_messages(topics=list(chosen), log_time_order=True):
@@ -242,9 +263,64 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
         raise DataError(f"{path}: cannot read the MCAP file: {str(err) or type(err).__name__}") from err
 
 
+class _McapRecords:
+    """The records of an MCAP file in file order (chunks opened, CRCs checked where the writer set them), read as far
+    as they go; once iterated, ``ended`` says why they ended early ("" where the file ended with its footer)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.ended = path, ""
+
+    def __iter__(self) -> Iterator[Any]:
+        from mcap.records import Footer
+        from mcap.stream_reader import StreamReader
+
+        with self.path.open("rb") as f:
+            try:
+                for record in StreamReader(f, validate_crcs=True).records:
+                    yield record
+                    if isinstance(record, Footer):
+                        return
+                self.ended = "it ends without its footer"
+            except Exception as err:  # whatever damaged bytes make the parser or a decompressor raise
+                self.ended = f"{type(err).__name__}{f': {err}' if str(err) else ''} at byte {f.tell()}"
+
+
+def _mcap_salvage(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[str, str, Any]]:
+    """The messages of an MCAP file that has no summary (a recording cut short: the writer never closed it) in the
+    order they were written, up to the first record that is cut or damaged (what follows it cannot be read); then,
+    where the file did not end cleanly, ("bag", "", a BagTruncated saying where it ended and how much was read)."""
+    from mcap.records import Channel, Message, Schema
+
+    store = jazzy_types().typestore
+    schemas: dict[int, str] = {}
+    channels: dict[int, Channel] = {}
+    for record in _McapRecords(path):  # the topics first (a writer records each channel before its first message)
+        if isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+    chosen = choose_topics(path, {c.topic: schemas.get(c.schema_id, "") for c in channels.values()}, want)
+    wanted = {i: c.topic for i, c in channels.items() if c.topic in chosen}
+    count, last_ns = 0, None
+    records = _McapRecords(path)
+    for record in records:
+        if isinstance(record, Message):
+            count, last_ns = count + 1, record.log_time
+            topic = wanted.get(record.channel_id)
+            if topic is not None:
+                yield chosen[topic], topic, _deserialize(store.deserialize_cdr, record.data,
+                                                         schemas[channels[record.channel_id].schema_id], topic)
+    if records.ended:
+        upto = f", the last logged at {last_ns * 1e-9:.3f} s" if last_ns is not None else ""
+        yield "bag", "", BagTruncated(f"the MCAP file {path} has no summary and its records end early "
+                                      f"({records.ended}) after {count} messages{upto}: a recording cut short?")
+
+
 def _decode(role: str, topic: str, msg: Any) -> Event | _GtEvent:
     """The event of one message; a DropEvent naming the topic when it cannot be decoded."""
     ns = None
+    if isinstance(msg, BagTruncated):
+        return DropEvent("bag_truncated", None, str(msg))
     try:
         if isinstance(msg, DataError):
             raise msg
@@ -364,7 +440,9 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     for ev in _events(path, kind, {"image": TopicRequest(image_topic), "imu": TopicRequest(imu_topic),
                                    "gt": TopicRequest(gt_topic)}):
         if isinstance(ev, DropEvent):
-            raise DataError(f"{path}: {ev.detail}")
+            whole = "; evaluation takes whole recordings (vi3 replay reads it up to there)" \
+                if ev.reason == "bag_truncated" else ""
+            raise DataError(f"{path}: {ev.detail}{whole}")
         sink[type(ev)].append(ev)
     if not images:
         raise DataError(f"{path}: the image topic has no messages")
