@@ -119,6 +119,10 @@ def test_an_mcap_recording_cut_short_is_read_up_to_where_it_ends(cache_dir, tmp_
             assert not isinstance(got, ImageEvent) or np.array_equal(got.image, ref.image)
     with pytest.raises(DataError, match="cut.mcap has no summary .*evaluation takes whole recordings"):
         open_sequence(bare)
+    (crashed / "second.mcap").write_bytes(cut)  # a split recording cut short: which file is which is not known
+    with pytest.raises(DataError, match=r"no metadata.yaml\) and holds 2 .mcap files: give them one at a time"):
+        open_sequence(crashed)
+    (crashed / "second.mcap").unlink()
     capsys.readouterr()
     rc = cli.main(["replay", str(crashed), "--output", str(tmp_path / "out.mcap"), "--calib",
                    str(find_mav0(asl) / "cam0" / "sensor.yaml"), "--no-progress"])

@@ -149,7 +149,8 @@ def resolve_input(path) -> tuple[Path, str]:
             files = sorted(path.glob("*.mcap"))
             if len(files) == 1:  # a rosbag2 recording cut short: ros2 bag writes metadata.yaml when it closes
                 return files[0], "mcap"
-            raise DataError(f"{err}; nor a rosbag2 directory (no metadata.yaml)") from None
+            split = f" and holds {len(files)} .mcap files: give them one at a time" if files else ""
+            raise DataError(f"{err}; nor a rosbag2 directory (no metadata.yaml){split}") from None
         return path, "asl"
     if not path.exists():
         raise DataError(f"{path}: {missing_reason(path)}")
