@@ -57,6 +57,7 @@ from vi3_core.types import ImuSamples
 from vi3_ros import interrupts
 from vi3_ros.io.output_lock import OutputLock
 from vi3_ros.io.reader import (
+    BAG_DAMAGE,
     CameraInfoEvent,
     DropEvent,
     Event,
@@ -472,11 +473,11 @@ def input_settings(input_path: Path, settings: Settings, *,
 def input_events(input_path: Path, settings: Settings, image_topic: str | None = None,
                  imu_topic: str | None = None, on_note: Callable[[str], None] | None = None) -> Iterator[Event]:
     """The input's events as ``settings`` and the explicit topics choose them (``topic_requests``); ``on_note`` is
-    told where a recording cut short ends (``bag_truncated``), as its drop is fed."""
+    told what of a recording cut short or damaged could not be read (``BAG_DAMAGE``), as its drop is fed."""
     image, imu = topic_requests(settings.inputs, image_topic, imu_topic)
     for event in iter_events(input_path, image=image, imu=imu, camera_info_topic=settings.inputs.camera_info_topic,
                              tf_static=settings.inputs.use_tf_static):
-        if on_note is not None and isinstance(event, DropEvent) and event.reason == "bag_truncated":
+        if on_note is not None and isinstance(event, DropEvent) and event.reason in BAG_DAMAGE:
             on_note(event.detail)
         yield event
 

@@ -88,7 +88,16 @@ def _fit(args: argparse.Namespace):
     from vi3_core.eval.reference import fit_halves, fit_reference
     from vi3_core.eval.tum import read_tum, write_tum
     from vi3_core.paths import check_output_file
-    from vi3_ros.io.reader import ImuEvent, TopicRequest, find_calib, imu_samples, iter_events, resolve_input
+    from vi3_ros.io.reader import (
+        BAG_DAMAGE,
+        DropEvent,
+        ImuEvent,
+        TopicRequest,
+        find_calib,
+        imu_samples,
+        iter_events,
+        resolve_input,
+    )
 
     out = check_output_file(args.output, [args.input, args.poses, *([args.calib] if args.calib else [])],
                             what="vi3 reference --output", kind="a TUM file", force=args.force)
@@ -102,8 +111,13 @@ def _fit(args: argparse.Namespace):
         raise DataError(f"{args.input} carries no calibration; pass --calib (its T_cam_imu mounts the camera)")
     T_BC = calib.T_BC
     stamps, T_WC = read_tum(args.poses)
-    imu = imu_samples(e for e in iter_events(args.input, imu=TopicRequest(args.imu_topic))
-                      if isinstance(e, ImuEvent))
+    imus = []
+    for e in iter_events(args.input, imu=TopicRequest(args.imu_topic)):  # frames are let go as they come
+        if isinstance(e, DropEvent) and e.reason in BAG_DAMAGE:
+            raise DataError(f"{e.detail}; a reference is fitted to whole recordings")
+        if isinstance(e, ImuEvent):
+            imus.append(e)
+    imu = imu_samples(imus)
     fit = fit_reference(stamps, T_WC, imu, T_BC, time_offset=args.time_offset, accel_intrinsics=args.accel_intrinsics)
     halves = fit_halves(stamps, T_WC, imu, T_BC, time_offset=fit.time_offset, accel_intrinsics=args.accel_intrinsics)
     inside = (stamps >= fit.span[0]) & (stamps <= fit.span[1])

@@ -11,7 +11,7 @@ the image topic's type is read from the recording.
 missing or corrupt) becomes a ``DropEvent`` naming it, as the node drops such a message and goes on; an input it
 cannot read at all (not a bag, a truncated ROS 1 bag, no image topic, an IMU csv that is empty or unsorted) raises
 DataError. An MCAP recording cut short (no summary; a rosbag2 folder without its metadata.yaml, which ros2 bag
-writes when it closes) is read up to where its records end, and a ``DropEvent`` ``bag_truncated`` says so.
+writes when it closes) is read as far as its records go, and a ``DropEvent`` ``bag_truncated`` says so.
 It streams: an ASL folder's IMU csv is read row by row and its ground truth not at all, so memory does not grow
 with the length of the recording.
 
@@ -90,9 +90,9 @@ class TfStaticEvent:
 @dataclass(frozen=True)
 class DropEvent:
     """A message that could not be decoded, dropped: ``reason`` (``image_malformed``, ``image_unsupported``,
-    ``imu_malformed``, ``camera_info_malformed``, ``tf_static_malformed``; ``bag_truncated``: the recording's
-    records end early, the last event), its stamp (int ns; None when even the header is unreadable) and ``detail``,
-    a sentence naming the topic or file and the problem."""
+    ``imu_malformed``, ``camera_info_malformed``, ``tf_static_malformed``; ``BAG_DAMAGE``'s: the recording's
+    records end early or some could not be read, the last event), its stamp (int ns; None when even the header is
+    unreadable) and ``detail``, a sentence naming the topic or file and the problem."""
 
     reason: str
     t_ns: int | None
@@ -102,8 +102,16 @@ class DropEvent:
 Event = ImageEvent | ImuEvent | CameraInfoEvent | TfStaticEvent | DropEvent
 
 
-class BagTruncated(DataError):
-    """A recording whose records end early: what preceded the damage was read, the rest cannot be."""
+BAG_DAMAGE = ("bag_truncated", "bag_damaged")  # the DropEvent reasons of a recording read only in part
+
+
+class BagDamage(DataError):
+    """A recording read only in part (``reason``: ``bag_truncated``, its records end early; ``bag_damaged``, some of
+    them could not be read): what could be read was."""
+
+    def __init__(self, text: str, reason: str) -> None:
+        super().__init__(text)
+        self.reason = reason
 
 
 @dataclass(frozen=True)
@@ -119,6 +127,8 @@ _ROLES: dict[str, tuple[tuple[str, ...], str | None]] = {
     "tf_static": ((topics.TF_TYPE,), topics.TF_STATIC_TOPIC)}
 _REQUIRED = ("image", "imu")
 _CALIBRATION_ROLES = ("camera_info", "tf_static")  # named topics, skipped when the recording lacks them
+MCAP_MAGIC = b"\x89MCAP0\r\n"  # an MCAP file's first and last 8 bytes
+_ZERO_BLOCK = 1 << 16  # bytes read at a time looking for a file's last non-zero byte
 #: Errors of rosbags' deserialisers on a message whose bytes do not fit its type.
 _UNDECODABLE = (ValueError, IndexError, KeyError, TypeError, struct.error)
 
@@ -248,10 +258,13 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
     try:
         with path.open("rb") as f:
             reader = make_reader(f)
+            f.seek(-min(len(MCAP_MAGIC), path.stat().st_size), 2)
+            closed = f.read() == MCAP_MAGIC  # a file cut short ends elsewhere: its last bytes are no footer
+            f.seek(0)
             try:
-                summary = reader.get_summary()
-            except (McapError, EOFError, struct.error):  # a file cut short: its end is not a footer
-                summary = None
+                summary = reader.get_summary() if closed else None
+            except (McapError, EOFError, struct.error, ValueError, OSError):
+                summary = None  # closed, but its summary is damaged
             if summary is None:
                 yield from _mcap_salvage(path, want)
                 return
@@ -264,64 +277,129 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
         raise DataError(f"{path}: cannot read the MCAP file: {str(err) or type(err).__name__}") from err
 
 
+class _Prefix:
+    """``read(n)`` of the first ``end`` bytes of an open binary file; ``pos``: the bytes read so far."""
+
+    def __init__(self, f: Any, end: int) -> None:
+        self._f, self.end, self.pos = f, end, 0
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._f.read(self.end - self.pos if n < 0 else min(n, self.end - self.pos))
+        self.pos += len(data)
+        return data
+
+
+def _data_end(f: Any, size: int) -> int:
+    """``size`` less the run of zero bytes the open file ends with (a file system can leave the unwritten end of a
+    file zeroed when the power is lost: those bytes are no records)."""
+    end = size
+    while end > 0:
+        start = max(end - _ZERO_BLOCK, 0)
+        f.seek(start)
+        nonzero = np.flatnonzero(np.frombuffer(f.read(end - start), np.uint8))
+        if len(nonzero):
+            return start + int(nonzero[-1]) + 1
+        end = start
+    return 0
+
+
 class _McapRecords:
-    """The records of an MCAP file in file order (chunks opened, CRCs checked where the writer set them), read as far
-    as they go; once iterated, ``ended`` says why they ended early ("" where the file ended with its footer)."""
+    """The records of an MCAP file in file order, read as far as its framing goes: each chunk opened on its own
+    (CRCs checked where the writer set them), a chunk that cannot be (damaged, or cut: the file's last) skipped and
+    named in ``skipped``; once iterated, ``ended`` says why the records ended early ("" where the file ended with its
+    footer), ``whole`` where the last whole record ends (bytes) and ``size`` the file's size."""
 
     def __init__(self, path: Path) -> None:
-        self.path, self.ended = path, ""
+        self.path, self.ended, self.skipped, self.whole, self.size = path, "", [], 0, 0
 
     def __iter__(self) -> Iterator[Any]:
-        from mcap.records import Footer
-        from mcap.stream_reader import StreamReader
+        from mcap.exceptions import McapError
+        from mcap.records import Chunk, Footer
+        from mcap.stream_reader import StreamReader, breakup_chunk
+        from zstandard import ZstdError
 
         with self.path.open("rb") as f:
+            self.size = f.seek(0, 2)
+            end = _data_end(f, self.size)
+            f.seek(0)
+            stream = _Prefix(f, end)
+            zeros = f", then {self.size - end} zero bytes" if end < self.size else ""
             try:
-                for record in StreamReader(f, validate_crcs=True).records:
+                for record in StreamReader(stream, emit_chunks=True).records:  # each chunk checks its own CRC
+                    self.whole = stream.pos
+                    if isinstance(record, Chunk):
+                        try:
+                            yield from breakup_chunk(record, validate_crc=True)
+                        except (McapError, struct.error, ValueError, EOFError, ZstdError, RuntimeError) as err:
+                            # RuntimeError: lz4's for a frame it cannot decompress
+                            self.skipped.append(f"bytes {self.whole - len(record.data)}-{self.whole}: {_why(err)}")
+                        continue
                     yield record
                     if isinstance(record, Footer):
                         return
-                self.ended = "it ends without its footer"
-            except Exception as err:  # whatever damaged bytes make the parser or a decompressor raise
-                self.ended = f"{type(err).__name__}{f': {err}' if str(err) else ''} at byte {f.tell()}"
+                self.ended = f"no footer after the last whole record, at byte {self.whole} of {self.size}{zeros}"
+            except (McapError, struct.error, ValueError, EOFError) as err:
+                self.ended = (f"{_why(err)} after the last whole record, at byte {self.whole} of {self.size}{zeros}")
+
+
+def _why(err: Exception) -> str:
+    name = "struct.error" if isinstance(err, struct.error) else type(err).__name__
+    return f"{name}{f': {err}' if str(err) else ''}"
 
 
 def _mcap_salvage(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[str, str, Any]]:
     """The messages of an MCAP file that has no summary (a recording cut short: the writer never closed it) in the
-    order they were written, up to the first record that is cut or damaged (what follows it cannot be read); then,
-    where the file did not end cleanly, ("bag", "", a BagTruncated saying where it ended and how much was read)."""
+    order they were written, as far as its records can be read (``_McapRecords``: a chunk that cannot be opened is
+    skipped, the rest read; the file is read twice, its topics first); then, where the file did not end cleanly,
+    ("bag", "", a BagDamage saying where it ended, what was skipped and how much was read)."""
     from mcap.records import Channel, Message, Schema
 
     store = jazzy_types().typestore
     schemas: dict[int, str] = {}
     channels: dict[int, Channel] = {}
-    for record in _McapRecords(path):  # the topics first (a writer records each channel before its first message)
+    first = _McapRecords(path)
+    for record in first:  # the topics first (a writer records each channel before its first message)
         if isinstance(record, Schema):
             schemas[record.id] = record.name
         elif isinstance(record, Channel):
             channels[record.id] = record
-    chosen = choose_topics(path, {c.topic: schemas.get(c.schema_id, "") for c in channels.values()}, want)
+    try:
+        chosen = choose_topics(path, {c.topic: schemas.get(c.schema_id, "") for c in channels.values()}, want)
+    except DataError as err:
+        if first.ended or first.skipped:
+            raise DataError(f"{err}; {_damage_text(first, 0, None)}") from None
+        raise
     wanted = {i: c.topic for i, c in channels.items() if c.topic in chosen}
-    count, last_ns = 0, None
+    count, span = 0, None
     records = _McapRecords(path)
     for record in records:
         if isinstance(record, Message):
-            count, last_ns = count + 1, record.log_time
+            count += 1
+            span = (record.log_time, record.log_time) if span is None else (span[0], record.log_time)
             topic = wanted.get(record.channel_id)
             if topic is not None:
                 yield chosen[topic], topic, _deserialize(store.deserialize_cdr, record.data,
                                                          schemas[channels[record.channel_id].schema_id], topic)
-    if records.ended:
-        upto = f", the last logged at {last_ns * 1e-9:.3f} s" if last_ns is not None else ""
-        yield "bag", "", BagTruncated(f"the MCAP file {path} has no summary and its records end early "
-                                      f"({records.ended}) after {count} messages{upto}: a recording cut short?")
+    if records.ended or records.skipped:
+        yield "bag", "", BagDamage(_damage_text(records, count, span),
+                                   "bag_truncated" if records.ended else "bag_damaged")
+
+
+def _damage_text(records: _McapRecords, count: int, span: tuple[int, int] | None) -> str:
+    """What a read of ``records`` got: ``count`` messages logged over ``span`` (ns, first and last; None: none)."""
+    over = f" logged over {(span[1] - span[0]) * 1e-9:.1f} s" if span is not None else ""
+    skipped = f"; {len(records.skipped)} damaged chunk(s) skipped ({'; '.join(records.skipped[:3])})" \
+        if records.skipped else ""
+    ended = f"its records end early ({records.ended})" if records.ended else "its records end with its footer"
+    cut = " (a recording cut short?)" if records.ended else ""
+    return f"the MCAP file {records.path} has no summary and {ended}{skipped}: {count} messages read{over}{cut}"
 
 
 def _decode(role: str, topic: str, msg: Any) -> Event | _GtEvent:
     """The event of one message; a DropEvent naming the topic when it cannot be decoded."""
     ns = None
-    if isinstance(msg, BagTruncated):
-        return DropEvent("bag_truncated", None, str(msg))
+    if isinstance(msg, BagDamage):
+        return DropEvent(msg.reason, None, str(msg))
     try:
         if isinstance(msg, DataError):
             raise msg
@@ -441,9 +519,9 @@ def open_sequence(path, *, calib: CameraCalib | str | Path | None = None, image_
     for ev in _events(path, kind, {"image": TopicRequest(image_topic), "imu": TopicRequest(imu_topic),
                                    "gt": TopicRequest(gt_topic)}):
         if isinstance(ev, DropEvent):
-            whole = "; evaluation takes whole recordings (vi3 replay reads it up to there)" \
-                if ev.reason == "bag_truncated" else ""
-            raise DataError(f"{path}: {ev.detail}{whole}")
+            if ev.reason in BAG_DAMAGE:
+                raise DataError(f"{ev.detail}; evaluation takes whole recordings (vi3 replay reads what it can)")
+            raise DataError(f"{path}: {ev.detail}")
         sink[type(ev)].append(ev)
     if not images:
         raise DataError(f"{path}: the image topic has no messages")
