@@ -14,7 +14,7 @@ from vi3_core.dataset.generate import EUROC_CAM0, cached_sequence
 from vi3_core.errors import DataError
 from vi3_ros import cli
 from vi3_ros.io.convert import convert_to_rosbag2
-from vi3_ros.io.reader import DropEvent, ImageEvent, ImuEvent, iter_events, merge_by_time, open_sequence
+from vi3_ros.io.reader import BAG_DAMAGE, DropEvent, ImageEvent, ImuEvent, iter_events, merge_by_time, open_sequence
 from vi3_ros.io.ros1 import noetic_typestore, ros1_types, write_ros1_bag
 
 pytestmark = pytest.mark.slow  # every test here runs replays, evaluations or generated sequences
@@ -143,6 +143,13 @@ def test_an_mcap_recording_cut_short_is_read_as_far_as_its_records_go(cache_dir,
     read_all_of([k for k in complete if k is not c], events)
     with pytest.raises(DataError, match="cut.mcap has no summary .*evaluation takes whole recordings"):
         open_sequence(bare)
+    closed = bytearray(raw)  # the recording closed, but its summary (between DataEnd and the footer) zeroed
+    footer = len(raw) - 8 - 29  # the footer record: opcode, length, two offsets and a CRC, before the end magic
+    closed[footer - 200: footer] = bytes(200)
+    data.write_bytes(bytes(closed))  # rosbags raised MemoryError reading it
+    *events, last = list(iter_events(mcap))
+    assert [(type(e), e.t_ns) for e in events] == [(type(e), e.t_ns) for e in whole] and last.reason in BAG_DAMAGE
+    data.write_bytes(raw[:at])
     header = tmp_path / "header.mcap"
     header.write_bytes(raw[:30])
     with pytest.raises(DataError, match=r"no image topic .*header.mcap has no summary and its records end early"):

@@ -217,19 +217,17 @@ def _bag_messages(path: Path, kind: str, want: dict[str, TopicRequest]) -> Itera
         return
     from rosbags.highlevel import AnyReader, AnyReaderError
 
-    started = False
+    files = sorted(path.glob("*.mcap")) if kind == "rosbag2" else []
+    if len(files) == 1 and _mcap_summary(files[0]) is None:  # cut short: rosbags reads only a file with its summary
+        yield from _mcap_salvage(files[0], want)
+        return
     try:
         with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
             chosen = choose_topics(path, {c.topic: full_name(c.msgtype) for c in reader.connections}, want)
             conns = [c for c in reader.connections if c.topic in chosen]
             for conn, _, raw in reader.messages(connections=conns):
-                started = True
                 yield chosen[conn.topic], conn.topic, _deserialize(reader.deserialize, raw, conn.msgtype, conn.topic)
     except AnyReaderError as err:
-        files = sorted(path.glob("*.mcap")) if kind == "rosbag2" else []
-        if len(files) == 1 and not started:  # its MCAP cut short: rosbags reads only a file with its summary
-            yield from _mcap_messages(files[0], want)
-            return
         raise DataError(f"{path}: cannot read the bag (truncated, unindexed or not a bag?): {err}") from err
     except DataError:
         raise
@@ -255,19 +253,13 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
     store = jazzy_types().typestore
     if path.stat().st_size == 0:
         raise DataError(f"{path}: cannot read the MCAP file: it is empty (0 bytes)")
+    if _mcap_summary(path) is None:
+        yield from _mcap_salvage(path, want)
+        return
     try:
         with path.open("rb") as f:
             reader = make_reader(f)
-            f.seek(-min(len(MCAP_MAGIC), path.stat().st_size), 2)
-            closed = f.read() == MCAP_MAGIC  # a file cut short ends elsewhere: its last bytes are no footer
-            f.seek(0)
-            try:
-                summary = reader.get_summary() if closed else None
-            except (McapError, EOFError, struct.error, ValueError, OSError):
-                summary = None  # closed, but its summary is damaged
-            if summary is None:
-                yield from _mcap_salvage(path, want)
-                return
+            summary = reader.get_summary()
             chosen = choose_topics(path, {ch.topic: summary.schemas[ch.schema_id].name
                                           for ch in summary.channels.values()}, want)
             for schema, channel, message in reader.iter_messages(topics=list(chosen), log_time_order=True):
@@ -275,6 +267,23 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
                                                                          schema.name, channel.topic)
     except (McapError, EOFError, struct.error) as err:
         raise DataError(f"{path}: cannot read the MCAP file: {str(err) or type(err).__name__}") from err
+
+
+def _mcap_summary(path: Path) -> Any | None:
+    """The summary of a non-empty MCAP file, or None where it has none that can be read: a file cut short ends
+    elsewhere than its closing magic (what precedes is no footer), or its summary is damaged."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        f.seek(-min(len(MCAP_MAGIC), path.stat().st_size), 2)
+        if f.read() != MCAP_MAGIC:
+            return None
+        f.seek(0)
+        try:
+            return make_reader(f).get_summary()
+        except (McapError, EOFError, struct.error, ValueError, OSError):
+            return None
 
 
 class _Prefix:
