@@ -218,9 +218,12 @@ def _bag_messages(path: Path, kind: str, want: dict[str, TopicRequest]) -> Itera
     from rosbags.highlevel import AnyReader, AnyReaderError
 
     files = sorted(path.glob("*.mcap")) if kind == "rosbag2" else []
-    if len(files) == 1 and _mcap_summary(files[0]) is None:  # cut short: rosbags reads only a file with its summary
-        yield from _mcap_salvage(files[0], want)
-        return
+    if len(files) == 1:
+        with files[0].open("rb") as f:
+            summary = _mcap_reader(f)[1]
+        if summary is None:  # cut short: rosbags reads only a file with its summary
+            yield from _mcap_salvage(files[0], want)
+            return
     try:
         with AnyReader([path], default_typestore=jazzy_types().typestore) as reader:
             chosen = choose_topics(path, {c.topic: full_name(c.msgtype) for c in reader.connections}, want)
@@ -248,18 +251,16 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
     """A bare .mcap file (no metadata.yaml): the mcap package reads it, the Jazzy typestore decodes CDR. A file
     without its summary, as a recording cut short leaves it, is read record by record (``_mcap_salvage``)."""
     from mcap.exceptions import McapError
-    from mcap.reader import make_reader
 
     store = jazzy_types().typestore
     if path.stat().st_size == 0:
         raise DataError(f"{path}: cannot read the MCAP file: it is empty (0 bytes)")
-    if _mcap_summary(path) is None:
-        yield from _mcap_salvage(path, want)
-        return
     try:
         with path.open("rb") as f:
-            reader = make_reader(f)
-            summary = reader.get_summary()
+            reader, summary = _mcap_reader(f)
+            if summary is None:
+                yield from _mcap_salvage(path, want)
+                return
             chosen = choose_topics(path, {ch.topic: summary.schemas[ch.schema_id].name
                                           for ch in summary.channels.values()}, want)
             for schema, channel, message in reader.iter_messages(topics=list(chosen), log_time_order=True):
@@ -269,21 +270,24 @@ def _mcap_messages(path: Path, want: dict[str, TopicRequest]) -> Iterator[tuple[
         raise DataError(f"{path}: cannot read the MCAP file: {str(err) or type(err).__name__}") from err
 
 
-def _mcap_summary(path: Path) -> Any | None:
-    """The summary of a non-empty MCAP file, or None where it has none that can be read: a file cut short ends
-    elsewhere than its closing magic (what precedes is no footer), or its summary is damaged."""
+def _mcap_reader(f: Any) -> tuple[Any, Any | None]:
+    """(the mcap package's reader of the open MCAP file ``f``, its summary, which the reader keeps; None where it has
+    none that can be read: a file cut short ends elsewhere than its closing magic, so what precedes it is no footer,
+    or its summary is damaged)."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    with path.open("rb") as f:
-        f.seek(-min(len(MCAP_MAGIC), path.stat().st_size), 2)
-        if f.read() != MCAP_MAGIC:
-            return None
-        f.seek(0)
-        try:
-            return make_reader(f).get_summary()
-        except (McapError, EOFError, struct.error, ValueError, OSError):
-            return None
+    size = f.seek(0, 2)
+    f.seek(-min(len(MCAP_MAGIC), size), 2)
+    closed = f.read() == MCAP_MAGIC
+    f.seek(0)
+    reader = make_reader(f)
+    if not closed:
+        return reader, None
+    try:
+        return reader, reader.get_summary()
+    except (McapError, EOFError, struct.error, ValueError, OSError):
+        return reader, None
 
 
 class _Prefix:
