@@ -161,6 +161,18 @@ class Clip:
         return len(self.stamps)
 
 
+@dataclass(frozen=True)
+class UnitsLink:
+    """A backbone's own word on how its units moved from one clip to the next, where its front end holds one scale
+    across them (the ``classical`` backbone's keyframes): the units of this prediction over those of the clip that
+    started at ``prev_start`` (s) and ended on this clip's first frame, log_ratio (log of (this clip's length of a
+    thing) / (that clip's length of it)), and its 1-sigma (relative), the scale the front end may have lost between."""
+
+    prev_start: float
+    log_ratio: float
+    sigma: float
+
+
 @dataclass
 class Geometry:
     """What a backbone predicts for a clip (numpy, detached).
@@ -169,7 +181,8 @@ class Geometry:
     K: [n,3,3] at the prediction resolution; depth: [n,h,w] z-depth (> 0, NaN/0 invalid);
     conf: [n,h,w] higher is better; metric: whether translation and depth are in metres; traj_depth_sigma: the
     1-sigma of the log of the trajectory's scale against the depth's, where the backbone knows how far the two can
-    disagree (0: it does not say; the window then takes them at one scale).
+    disagree (0: it does not say; the window then takes them at one scale); units_link: the backbone's ``UnitsLink``
+    to the clip before, where it has one.
     """
 
     T_wc: np.ndarray
@@ -178,13 +191,15 @@ class Geometry:
     conf: np.ndarray
     metric: bool = False
     traj_depth_sigma: float = 0.0
+    units_link: UnitsLink | None = None
 
     @property
     def n(self) -> int:
         return len(self.T_wc)
 
     def scaled(self, s: float) -> Geometry:
-        """Translation and depth multiplied by ``s`` (rotation and intrinsics untouched)."""
+        """Translation and depth multiplied by ``s`` (rotation and intrinsics untouched; no ``units_link``: the units
+        are no longer the backbone's)."""
         T = self.T_wc.copy()
         T[:, :3, 3] *= s
         return Geometry(T, self.K.copy(), self.depth * s, self.conf.copy(), self.metric, self.traj_depth_sigma)

@@ -322,7 +322,7 @@ def test_bench_backbone_reports_the_keys(cache_dir, monkeypatch):
     assert (out["backbone"], out["device"], out["dtype"], out["random_init"]) == ("classical", "cpu", "fp32", False)
     assert "peak_gpu_mem_mb" not in out  # CUDA only
     assert 0 < out["median_s"] < 60 and out["status"] == "ok"
-    assert set(out["stages_s"]) == {"tracks_s", "sfm_s", "mvs_s"}
+    assert set(out["stages_s"]) == {"tracks_s", "sfm_s", "keyframes_s", "mvs_s"}
     assert out["threads"] == torch.get_num_threads() and "omp_wait_policy" in out
 
 

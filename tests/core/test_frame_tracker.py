@@ -5,6 +5,7 @@ forward-backward check, the warm start and the incremental registration, and ``v
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import asdict
 
 import cv2
@@ -236,15 +237,66 @@ def test_a_camera_no_point_constrains_is_left_where_it_was():
     uv[:, -1], visible[:, -1] = np.nan, False
     points = triangulate(uv, visible, R_wc, t_wc, K)
     t_start = t_wc + np.random.default_rng(1).normal(scale=0.002, size=t_wc.shape) * (np.arange(8) > 0)[:, None]
-    R_out, t_out, _, bias, traj_depth_sigma = bundle_adjust(R_wc, t_start, points, uv, visible, K)
+    R_out, t_out, _, bias, traj_depth_sigma, held_sigma = bundle_adjust(R_wc, t_start, points, uv, visible, K)
     assert bias is None  # no gyro prior
-    assert np.isnan(traj_depth_sigma)  # that camera's centre is free: no sigma of the trajectory against the depth
+    assert np.isnan(traj_depth_sigma) and np.isnan(held_sigma)  # that centre is free; and no camera is held
     unchanged = bundle_adjust(R_wc, t_start, points, uv, visible, K, iterations=0)  # no iteration: the input back
     np.testing.assert_allclose(unchanged.t_wc, t_start, atol=1e-12)
     assert np.isnan(unchanged.traj_depth_sigma)
     np.testing.assert_allclose(t_out[-1], t_start[-1], atol=1e-12)
     np.testing.assert_allclose(R_out[-1], R_wc[-1], atol=1e-12)
     assert np.abs(t_out[1:-1] - t_wc[1:-1]).max() < np.abs(t_start[1:-1] - t_wc[1:-1]).max()
+
+
+def test_held_keyframes_give_the_clip_their_scale():
+    """A clip (frames 2-11 of a turning camera) started at 1.3 times the true scale, its points triangulated there:
+    alone, the bundle adjustment keeps that scale (its gauge is free); with frames 0 and 1 held where they truly are
+    (keyframes of earlier clips, seeing the same points), it comes back to the true scale within 1 %, and the held
+    cameras do not move."""
+    tracks, K, R_wc, t_wc = _turning_tracks(n=12)
+    clip, held = np.arange(2, 12), np.array([0, 1])
+    R_true, t_true = R_wc[2].T @ R_wc, (t_wc - t_wc[2]) @ R_wc[2]  # the world: the clip's first camera
+    t_start = t_true.copy()
+    t_start[clip] *= 1.3
+    shared = (tracks.visible[:, clip].sum(1) >= 2)
+    uv, visible = tracks.uv[shared], tracks.visible[shared]
+    points = triangulate(uv[:, clip], visible[:, clip], R_true[clip], t_start[clip], K)
+    assert (visible[:, clip].sum(1) >= 1).all() and (visible[:, held].any(1) & np.isfinite(points[:, 0])).sum() > 100
+
+    def scale(t: np.ndarray) -> float:
+        return float(np.linalg.norm(t[-1] - t[0]) / np.linalg.norm(t_true[11] - t_true[2]))
+
+    alone = bundle_adjust(R_true[clip], t_start[clip], points, uv[:, clip], visible[:, clip], K)
+    assert scale(alone.t_wc) == pytest.approx(1.3, rel=0.02)
+    order = np.concatenate([clip, held])
+    anchored = bundle_adjust(R_true[order], t_start[order], points, uv[:, order], visible[:, order], K, held=2)
+    assert scale(anchored.t_wc[:10]) == pytest.approx(1.0, rel=0.01)
+    np.testing.assert_allclose(anchored.t_wc[10:], t_true[held], atol=1e-12)
+    np.testing.assert_allclose(anchored.R_wc[10:], R_true[held], atol=1e-12)
+    # the trajectory's sigma against the depth is the clip's own, whatever holds its gauge; the scale's against the
+    # held cameras is small (0.2 px noise, a hundred points) and none where nothing is held
+    assert anchored.traj_depth_sigma == pytest.approx(alone.traj_depth_sigma, rel=0.3)
+    assert 1e-4 < anchored.held_scale_sigma < 0.01 and np.isnan(alone.held_scale_sigma)
+
+
+def test_the_held_scale_sigma_is_what_the_pixel_noise_gives():
+    """The clip of the test above with frames 0 and 1 held, 40 draws of 0.5 px noise on every observation, each
+    adjusted from the truth: the spread of the log of the clip's scale is the formal ``held_scale_sigma`` (ratio
+    within 0.7-1.4)."""
+    tracks, K, R_wc, t_wc = _turning_tracks(n=12)
+    R_true, t_true = R_wc[2].T @ R_wc, (t_wc - t_wc[2]) @ R_wc[2]
+    order = np.r_[2:12, 0, 1]
+    shared = tracks.visible[:, 2:].sum(1) >= 2
+    uv0, visible = tracks.uv[shared][:, order], tracks.visible[shared][:, order]
+    log_scale, sigma = [], []
+    for seed in range(40):
+        uv = uv0 + np.random.default_rng(200 + seed).normal(scale=0.5, size=uv0.shape)
+        points = triangulate(uv[:, :10], visible[:, :10], R_true[order[:10]], t_true[order[:10]], K)
+        out = bundle_adjust(R_true[order], t_true[order], points, uv, visible, K, held=2)
+        log_scale.append(np.log(np.linalg.norm(out.t_wc[9]) / np.linalg.norm(t_true[11])))
+        sigma.append(out.held_scale_sigma)
+    ratio = np.std(log_scale, ddof=1) / np.median(sigma)
+    assert 0.7 < ratio < 1.4, (ratio, np.median(sigma))
 
 
 def _biased_gyro(R_true: np.ndarray, bg_sigma: float) -> tuple[GyroRotations, np.ndarray]:
@@ -313,7 +365,7 @@ def test_the_bundle_adjustment_fits_the_gyro_bias_within_its_estimates_sigma():
     R_start = np.stack([R_true[0]] + [so3.exp(rng.normal(scale=np.radians(0.5), size=3)) @ R for R in R_true[1:]])
     for bg_sigma in (0.01, 1e-5):
         gyro, true_bg = _biased_gyro(R_true, bg_sigma)
-        R, _, _, bias, _ = bundle_adjust(R_start, t_true.copy(), points, tracks.uv, tracks.visible, K, gyro=gyro,
+        R, _, _, bias, _, _ = bundle_adjust(R_start, t_true.copy(), points, tracks.uv, tracks.visible, K, gyro=gyro,
                                          gyro_sigma=np.radians(0.05))
         if bg_sigma == 0.01:
             assert max(np.degrees(so3.angle(R_true[i].T @ R[i])) for i in range(len(R))) < 0.05
@@ -451,6 +503,39 @@ def test_the_backbone_carries_tracks_and_structure_from_clip_to_clip(room):
     carried.bind(second)
     carried.preprocess(second.images, second.K)
     assert carried.diagnostics()["front_end"]["frames"] == 8 and carried.diagnostics()["warm_start"] is False
+
+
+@pytest.mark.slow
+def test_keyframes_hold_the_units_from_clip_to_clip(room):
+    """Sliding clips of the room: from the first clip that an older keyframe sees on, the bundle adjustment holds the
+    keyframes (``anchored``) and the prediction says how its normalised units moved from the clip before
+    (``UnitsLink``) with the adjustment's formal sigma of its scale against the keyframes', inflated, and within 2
+    of those sigmas of the truth's ratio (each clip's units per metre from its camera centres' spread against the
+    ground truth's); without keyframes, or after a clip that skipped frames, none is said."""
+    idx = np.arange(0, 15, 2)
+    for keyframes in (False, True):  # the last backbone, with keyframes, then sees a clip that skipped frames
+        backbone = ClassicalBackbone(keyframes=keyframes)
+        prev, said = None, []
+        for k in range(5):
+            clip = make_clip(room, idx + 14 * k)
+            backbone.bind(clip)
+            inputs = backbone.preprocess(clip.images, clip.K)
+            geometry = backbone.forward(inputs).geometry()
+            c = geometry.T_wc[:, :3, 3] - geometry.T_wc[:, :3, 3].mean(0)
+            c_gt = gt_camera_poses(clip.gt, clip.T_BC)[:, :3, 3]
+            units = math.sqrt((c**2).sum() / ((c_gt - c_gt.mean(0)) ** 2).sum())  # per metre
+            link = geometry.units_link
+            said.append(link is not None)
+            if link is not None:
+                assert inputs.diagnostics["anchored"] >= 30 and link.prev_start == pytest.approx(clip.stamps[0] - 0.7)
+                assert link.sigma == pytest.approx(3.75 * inputs.diagnostics["held_scale_sigma"])
+                assert 0.001 < link.sigma < 0.03
+                assert abs(link.log_ratio - math.log(units / prev)) < 2 * link.sigma, (link, units / prev)
+            prev = units
+        assert said == ([False, False, False, True, True] if keyframes else [False] * 5)
+    skipped = make_clip(room, idx + 14 * 3 + 1)  # not where the last clip ended
+    backbone.bind(skipped)
+    assert backbone.forward(backbone.preprocess(skipped.images, skipped.K)).units_link is None
 
 
 @pytest.mark.slow

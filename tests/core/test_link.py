@@ -4,6 +4,7 @@ with a sigma that covers its error; and the instrument's depth noise it is measu
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ import pytest
 from vi3_core import so3
 from vi3_core.online.link import SharedFrames, depth_link, measure_link, pose_link
 from vi3_core.sim.visual import DepthNoise
-from vi3_core.types import Clip, Geometry, ImuSamples
+from vi3_core.types import Clip, Geometry, ImuSamples, UnitsLink
 
 H, W = 60, 80
 
@@ -96,3 +97,33 @@ def test_shared_frames_link_a_clip_that_starts_with_them_and_stand_in_for_droppe
     assert np.array_equal(into.stamps, [0.3, 1.0, 1.1, 1.2]) and into.imu.t[0] <= 0.3
     assert np.array_equal(into.stamps_ns, [300_000_000, 1_000_000_000, 1_100_000_000, 1_200_000_000])
     assert shared.into(Clip(**{**later.__dict__, "imu_history": None})) is None  # no IMU back to the shared frame
+
+
+def test_a_backbones_own_units_link_joins_the_depth_link_when_they_agree():
+    """A backbone that says how its units moved (``UnitsLink``, the classical keyframes) to the clip the shared frame
+    came from: its ratio (its sigma with the floor) joins the depth link's, weighted by their sigmas, where the two
+    agree within 3 sigmas of both and of the two clips' trajectory against their depth (the units read the
+    trajectories, the depth the plane sweeps); beyond, the link is refused, naming both; a units link to another clip
+    is not used."""
+    rng = np.random.default_rng(2)
+    metres = np.concatenate([_scene_depth(rng)] * 4)
+    first, geo_first = _clip(np.array([0.0, 0.1, 0.2, 0.3]), metres / 2.0)
+    shared = SharedFrames.of(first, replace(geo_first, traj_depth_sigma=0.03), k=1, sigma_v=0.001)
+    assert shared.traj_depth_sigma == 0.03
+    nxt, geo_nxt = _clip(np.array([0.3, 0.4, 0.5, 0.6]), metres / 4.0)
+    depth = measure_link(shared, geo_nxt, 0.001, sigma_floor=0.005)
+    assert depth.source == "depth"
+    d, sd = depth.link.log_ratio, depth.link.sigma
+    units = UnitsLink(0.0, math.log(0.5) + 0.08, 0.01)  # 8 % from the depth's: within 3 x hypot(0.5, 1.1, 3) %
+    got = measure_link(shared, replace(geo_nxt, units_link=units), 0.001, sigma_floor=0.005)
+    su = math.hypot(0.01, 0.005)
+    w = np.array([sd**-2, su**-2])
+    assert got.source == "depth+units" and "depth+units of 1 frame(s)" in got.describe()
+    assert got.link.sigma == pytest.approx(w.sum() ** -0.5)
+    assert got.link.log_ratio == pytest.approx((w @ [d, units.log_ratio]) / w.sum())
+    refused = measure_link(replace(shared, traj_depth_sigma=0.0), replace(geo_nxt, units_link=units), 0.001,
+                           sigma_floor=0.005)
+    assert isinstance(refused, str) and refused.startswith("depth (0.5000") and "units (0.5416" in refused
+    elsewhere = measure_link(shared, replace(geo_nxt, units_link=replace(units, prev_start=0.1)), 0.001,
+                             sigma_floor=0.005)
+    assert elsewhere.source == "depth" and elsewhere.link.log_ratio == d

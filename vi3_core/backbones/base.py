@@ -16,7 +16,7 @@ import torch
 
 from vi3_core import so3
 from vi3_core.preintegration import preintegrate
-from vi3_core.types import Clip, Geometry
+from vi3_core.types import Clip, Geometry, UnitsLink
 
 #: Capabilities a backbone may declare.
 CAP_TTR = "ttr"  # has trainable groups for test-time refinement
@@ -50,8 +50,8 @@ class Condition:
 @dataclass
 class Prediction:
     """Differentiable outputs (torch). R_wc [n,3,3]; t_wc [n,3] raw translation (model units, or metres
-    when ``metric``); K [n,3,3]; depth [n,h,w] z-depth (> 0); conf [n,h,w] higher is better; traj_depth_sigma:
-    ``Geometry``'s."""
+    when ``metric``); K [n,3,3]; depth [n,h,w] z-depth (> 0); conf [n,h,w] higher is better; traj_depth_sigma,
+    units_link: ``Geometry``'s."""
 
     R_wc: torch.Tensor
     t_wc: torch.Tensor
@@ -60,6 +60,7 @@ class Prediction:
     conf: torch.Tensor
     metric: bool = False
     traj_depth_sigma: float = 0.0
+    units_link: UnitsLink | None = None
 
     def geometry(self, scale: float = 1.0) -> Geometry:
         """Detached numpy ``Geometry`` with translation and depth multiplied by ``scale``."""
@@ -69,7 +70,7 @@ class Prediction:
         return Geometry(T_wc=T, K=self.K.detach().double().cpu().numpy(),
                         depth=self.depth.detach().float().cpu().numpy() * scale,
                         conf=self.conf.detach().float().cpu().numpy(), metric=self.metric,
-                        traj_depth_sigma=self.traj_depth_sigma)
+                        traj_depth_sigma=self.traj_depth_sigma, units_link=self.units_link)
 
 
 @dataclass(frozen=True)

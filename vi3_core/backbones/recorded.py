@@ -61,7 +61,7 @@ class RecordingBackbone(Backbone):
         if condition is None and not torch.is_grad_enabled() and self._key is not None:
             self.recording.predictions[self._key] = Prediction(*(t.detach().clone() for t in (
                 pred.R_wc, pred.t_wc, pred.K, pred.depth, pred.conf)), metric=pred.metric,
-                traj_depth_sigma=pred.traj_depth_sigma)
+                traj_depth_sigma=pred.traj_depth_sigma, units_link=pred.units_link)
             self.recording.diagnostics[self._key] = self.inner.diagnostics()
         return pred
 

@@ -5,7 +5,8 @@ A 3DFM normalises every clip on its own, so two clips' model units differ by an 
 predicted, every length is the same physical length in both units: lam_k / lam_(k-1) = depth_k / depth_(k-1) pixel by
 pixel, and = |d_k| / |d_(k-1)| for the displacement d between two shared frames (lam = model units per metre). On
 gentle motion a 0.7 s clip cannot pin its own scale at a 3DFM's noise, but the chain of such ratios lets the window's
-clips share one scale, so scale evidence accumulates over the flight as gravity and the biases do.
+clips share one scale, so scale evidence accumulates over the flight as gravity and the biases do. A backbone whose
+front end holds one scale across clips (the ``classical`` keyframes) says the ratio itself (``Geometry.units_link``).
 
 Depth: the per-pixel log ratio over the pixels both clips trust (finite, positive, confidence positive and at or
 above ``CONF_QUANTILE`` of each map's positive confidences), summarised per block of a ``GRID`` x ``GRID`` grid of
@@ -14,7 +15,8 @@ error that varies across the image shows up there; per-pixel noise averages out)
 number of blocks, with ``link_sigma_floor`` for the errors no spread within one frame shows. Poses (two or more
 shared frames): the ratio of the norms of the first-to-last displacement, with the clips' own visual noise. When both
 exist they must agree within ``AGREE_SIGMA`` sigma, else the link is refused; agreeing, they are combined by their
-weights.
+weights. The backbone's own ratio, to the clip the shared frames came from, joins them on the same terms (its sigma
+with the floor).
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ class SharedFrames:
     clip's first camera frame and depth, conf [k,h,w] (model units of that clip); sigma_v: that clip's visual noise
     per axis (model units); gt: their ground truth (evaluation only, else None); clip_start: that clip's first stamp
     (s), which names it; bridge: None for a clip that joined the window; for one that did not (inconsistent with
-    it), its own link to the window's newest member, through which the next clip links across it."""
+    it), its own link to the window's newest member, through which the next clip links across it; traj_depth_sigma:
+    that clip's ``Geometry``'s."""
 
     stamps: np.ndarray
     stamps_ns: np.ndarray | None
@@ -55,6 +58,7 @@ class SharedFrames:
     gt: GroundTruth | None
     clip_start: float
     bridge: MeasuredLink | None = None
+    traj_depth_sigma: float = 0.0
 
     @staticmethod
     def of(clip: Clip, geometry: Geometry, *, k: int, sigma_v: float,
@@ -65,7 +69,7 @@ class SharedFrames:
         return SharedFrames(np.array(clip.stamps[tail]), None if clip.stamps_ns is None else
                             np.array(clip.stamps_ns[tail]), np.array(clip.images[tail]), np.array(geometry.T_wc[tail]),
                             np.array(geometry.depth[tail]), np.array(geometry.conf[tail]), float(sigma_v),
-                            _gt_frames(clip.gt, tail), float(clip.stamps[0]), bridge)
+                            _gt_frames(clip.gt, tail), float(clip.stamps[0]), bridge, geometry.traj_depth_sigma)
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -105,7 +109,8 @@ class SharedFrames:
 
 @dataclass(frozen=True)
 class MeasuredLink:
-    """A link measured on ``frames`` shared frames from ``source`` ("depth", "poses" or "depth+poses"): ``link`` the
+    """A link measured on ``frames`` shared frames from ``source`` ("depth", "poses", "units" or those joined by "+";
+    "units": the backbone's own ``UnitsLink``): ``link`` the
     ratio for the fit, and the clip it links to (``clip_start``, s); ``via``: the first stamp of a clip that did not
     join the window, when the link runs across it (the product of this clip's link to it and its own to the clip at
     clip_start), else None."""
@@ -193,18 +198,50 @@ def measure_link(shared: SharedFrames, geometry: Geometry, sigma_v: float, *, si
         why.append(f"poses: {p}")
     else:
         found["poses"] = (p[0], math.hypot(p[1], sigma_floor))
+    u = geometry.units_link
+    if u is not None and u.prev_start == shared.clip_start:
+        return _with_units(found, (u.log_ratio, math.hypot(u.sigma, sigma_floor)), k, shared, geometry)
     if not found:
         return "; ".join(why)
-    if len(found) == 2:
-        (a, sa), (b, sb) = found["depth"], found["poses"]
-        if abs(a - b) > AGREE_SIGMA * math.hypot(sa, sb):
-            return (f"depth ({math.exp(a):.4f} +- {100 * sa:.2f} %) and poses ({math.exp(b):.4f} +- {100 * sb:.2f} %) "
-                    "disagree on the scale ratio")
-        wa, wb = sa**-2, sb**-2
-        log_ratio, sigma = (wa * a + wb * b) / (wa + wb), (wa + wb) ** -0.5
-    else:
-        log_ratio, sigma = next(iter(found.values()))
-    return MeasuredLink(ScaleLink(log_ratio, sigma), k, "+".join(found), shared.clip_start)
+    if len(found) == 2 and _apart(found["depth"], found["poses"]):
+        return _disagree("depth", found["depth"], "poses", found["poses"])
+    return MeasuredLink(ScaleLink(*_combined(found)), k, "+".join(found), shared.clip_start)
+
+
+def _with_units(found: dict[str, tuple[float, float]], units: tuple[float, float], k: int, shared: SharedFrames,
+                geometry: Geometry) -> MeasuredLink | str:
+    """The link of a clip whose backbone says how its units moved (``units``: log ratio, sigma with the floor): those
+    units and what ``found`` has (the shared frame's depth, their displacement), weighted by their sigmas, where they
+    agree within ``AGREE_SIGMA`` of their sigmas (the depth's and the units' also of the two clips' trajectory against
+    their depth: the depth ratio reads the two clips' plane sweeps, the units their trajectories), else refused."""
+    if "depth" in found and _apart(found["depth"], units, geometry.traj_depth_sigma, shared.traj_depth_sigma):
+        return _disagree("depth", found["depth"], "units", units)
+    parts = {**({"depth": found["depth"]} if "depth" in found else {}), "units": units}
+    if "poses" in found:
+        if _apart(units, found["poses"]):
+            return _disagree("units", units, "poses", found["poses"])
+        parts["poses"] = found["poses"]
+    return MeasuredLink(ScaleLink(*_combined(parts)), k, "+".join(parts), shared.clip_start)
+
+
+def _apart(x: tuple[float, float], y: tuple[float, float], *other_sigmas: float) -> bool:
+    """Whether two ratios (log ratio, sigma) are more than ``AGREE_SIGMA`` of their combined sigma (and
+    ``other_sigmas``) apart."""
+    return abs(x[0] - y[0]) > AGREE_SIGMA * math.hypot(x[1], y[1], *other_sigmas)
+
+
+def _combined(parts: dict[str, tuple[float, float]]) -> tuple[float, float]:
+    """The inverse-variance weighted mean of the ratios ``parts`` (log ratio, sigma) and its sigma (one: itself)."""
+    if len(parts) == 1:
+        return next(iter(parts.values()))
+    w = np.array([sig**-2 for _, sig in parts.values()])
+    return float(w @ np.array([r for r, _ in parts.values()]) / w.sum()), float(w.sum() ** -0.5)
+
+
+def _disagree(a: str, x: tuple[float, float], b: str, y: tuple[float, float]) -> str:
+    """Why a link is refused: its sources ``a`` and ``b`` (log ratio, sigma) disagree."""
+    return (f"{a} ({math.exp(x[0]):.4f} +- {100 * x[1]:.2f} %) and {b} ({math.exp(y[0]):.4f} +- {100 * y[1]:.2f} %) "
+            "disagree on the scale ratio")
 
 
 def _trusted(conf: np.ndarray) -> np.ndarray:

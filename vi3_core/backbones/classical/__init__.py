@@ -3,9 +3,10 @@
 ``preprocess`` does the non-differentiable work once per clip: the feature tracks of its frames, each frame tracked
 once by a front end that lives across clips (``tracks.FrameTracker``: a clip that starts with the last frame of the
 one before, as ``bind`` tells by the clip's stamps, continues its tracks; any other starts them afresh), structure
-from motion into one consistent up-to-scale frame (``poses``, ``bundle``) and plane-sweep stereo at the working
-resolution (``mvs``) of the frames whose depth is read (``bind``'s ``depth_frames``; the others NaN with zero
-confidence).
+from motion into one consistent up-to-scale frame (``poses``, ``bundle``), held to the scale of a small map of
+keyframes that lives across clips where they see the clip's points (``keyframes``; the prediction's ``units_link``
+then says how its units moved from the clip before), and plane-sweep stereo at the working resolution (``mvs``) of the
+frames whose depth is read (``bind``'s ``depth_frames``; the others NaN with zero confidence).
 ``forward`` then applies explicit trainable corrections, zero at the start, so that the base forward is exactly the
 classical result and test-time refinement can move poses and depth:
 
@@ -50,6 +51,7 @@ from vi3_core.backbones.base import (
     ParamGroups,
     Prediction,
 )
+from vi3_core.backbones.classical.keyframes import KeyframeMap
 from vi3_core.backbones.classical.mvs import plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
 from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks
@@ -57,6 +59,7 @@ from vi3_core.backbones.front_end import FrameLosses
 from vi3_core.camera import backproject
 from vi3_core.errors import DataError, ModeNotSupported
 from vi3_core.threads import torch_threads
+from vi3_core.types import UnitsLink
 
 # a clip whose formal sigma of its trajectory against its depth cannot be computed (a frame no point constrains, too
 # few observations): its trajectory is taken as unknown against its depth (100 %), its depth still links the chain
@@ -83,7 +86,8 @@ class ClassicalInputs(BackboneInputs):
     base_R_wc [n,3,3], base_t_wc [n,3] camera-to-world (frame 0 = identity, normalised scale); base_depth,
     base_conf [n,h,w]; corrections: this clip's ``Corrections``; status/reason: see the module docstring;
     diagnostics: counts, errors, stage timings (s), the plane-sweep threads (mvs_workers) and the front end's losses
-    (front_end, ``ClassicalBackbone.diagnostics``).
+    (front_end, ``ClassicalBackbone.diagnostics``); units_link: its normalised units against the clip before's, where
+    the keyframes held its scale (``UnitsLink``).
     """
 
     base_R_wc: torch.Tensor
@@ -94,6 +98,7 @@ class ClassicalInputs(BackboneInputs):
     status: str
     reason: str
     diagnostics: dict = field(default_factory=dict)
+    units_link: UnitsLink | None = None
 
 
 def _area_resized(images: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -140,6 +145,10 @@ class ClassicalBackbone(Backbone):
     the tracks' pixel errors as independent (and is right for such errors); the tracker's are not, and on two renders
     with depth ground truth (the V1_02-like and a handheld RealSense-like one, 77 clips) the clips' log(trajectory
     scale / depth scale) came out at 3.75 formal sigmas (robust 1-sigma of the ratio; 3.1 and 4.4 apart);
+    ``keyframes``: hold each clip's bundle adjustment to the keyframes of the clips before (``keyframes.KeyframeMap``;
+    False: each clip's scale is what its own frames hand on); ``held_scale_inflation``: the factor on the adjustment's
+    formal 1-sigma of the clip's scale against the held keyframes that the prediction's ``units_link`` reports (the
+    chained scale's change per link on the real recording and three handheld renders came out at 1.4-4.4 times it);
     ``threads``: Python threads that sweep reference frames concurrently (None: torch's intra-op thread count when
     the clip comes, the process's ``threads`` setting, see ``vi3_core.threads``).
 
@@ -162,13 +171,20 @@ class ClassicalBackbone(Backbone):
                  max_side: int = 1024, downscale: float = 4.0, tracker: TrackerOptions | None = None,
                  n_depths: int = 24,
                  n_sources: int = 2, best_k: int = 2, window: int = 7, bundle_adjust: bool = True,
-                 gyro_sigma_deg: float = 0.05, traj_depth_inflation: float = 3.75, threads: int | None = None) -> None:
+                 gyro_sigma_deg: float = 0.05, traj_depth_inflation: float = 3.75, keyframes: bool = True,
+                 held_scale_inflation: float = 3.75, threads: int | None = None) -> None:
         super().__init__(device=device, dtype=dtype)
         if downscale < 1 or max_side < 64:
             raise ValueError(f"downscale must be >= 1 and max_side >= 64, got {downscale} and {max_side}")
         self.max_side = max_side
         self.downscale = downscale
         self.tracker = FrameTracker(tracker)
+        self.keyframes = KeyframeMap() if keyframes else None
+        if not (math.isfinite(held_scale_inflation) and held_scale_inflation > 0):
+            raise ValueError(f"held_scale_inflation must be finite and > 0, got {held_scale_inflation}")
+        self.held_scale_inflation = held_scale_inflation
+        # the last clip whose scale the keyframe map held or carried: (its first key, its last key, its scale divisor)
+        self._units: tuple[float, float, float] | None = None
         if threads is not None and threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
         if not (math.isfinite(gyro_sigma_deg) and gyro_sigma_deg >= 0):
@@ -200,7 +216,9 @@ class ClassicalBackbone(Backbone):
     def forget(self) -> None:
         """Drop the front end's tracks, the carried structure and the last clip's inputs (``Backbone.forget``)."""
         self.tracker.reset()
-        self._structure, self.last_inputs = None, None
+        if self.keyframes is not None:
+            self.keyframes.reset()
+        self._structure, self.last_inputs, self._units = None, None, None
 
     @property
     def last_status(self) -> str:
@@ -258,6 +276,8 @@ class ClassicalBackbone(Backbone):
             (done == len(keys) or tr.last_key == keys[done - 1])
         if not continues:
             tr.reset()
+            if self.keyframes is not None:
+                self.keyframes.reset()
             self._structure, done = None, 0
         for key, g in zip(keys[done:], gray[done:]):
             tr.add(key, g)
@@ -282,6 +302,34 @@ class ClassicalBackbone(Backbone):
         good = np.isfinite(sfm.points[:, 0])
         self._structure = (last_key, tracks.ids[good], (sfm.points[good] - t) @ R)
 
+    def _units_link(self, sfm: SfmResult, keys: list[float]) -> UnitsLink | None:
+        """The clip's ``UnitsLink`` to the clip before: where the keyframes held its bundle adjustment, the ratio of
+        the two clips' scale divisors (both in the map's units), of 1-sigma ``held_scale_inflation`` times the
+        adjustment's formal one of the clip's scale against the keyframes' (``bundle.Adjusted.held_scale_sigma``);
+        None elsewhere. Remembers the clip for the next."""
+        prev, self._units = self._units, None
+        if not sfm.ok or self.keyframes is None:
+            return None
+        s = float(sfm.diagnostics["scale_divisor"])
+        held = bool(sfm.diagnostics.get("anchored")) or bool(sfm.diagnostics.get("warm_start"))
+        if held:
+            self._units = (keys[0], keys[-1], s)
+        formal = float(sfm.diagnostics.get("held_scale_sigma", float("nan")))
+        if not sfm.diagnostics.get("anchored") or not math.isfinite(formal) or prev is None or prev[1] != keys[0]:
+            return None
+        return UnitsLink(prev[0], math.log(prev[2] / s), self.held_scale_inflation * formal)
+
+    @staticmethod
+    def _extend_map(kf: KeyframeMap, sfm: SfmResult, gray_last: np.ndarray, keys: list[float]) -> None:
+        """The clip's end recorded in the keyframe map (``KeyframeMap.extend``; a failed clip resets it)."""
+        if not sfm.ok:
+            kf.reset()
+            return
+        good = np.isfinite(sfm.points[:, 0])
+        depth = float(np.median(np.linalg.norm(sfm.points[good] - sfm.t_wc[-1], axis=1))) if good.any() else 0.0
+        kf.extend(gray_last, keys[-1], keys[0], so3.make_T(sfm.R_wc[-1], sfm.t_wc[-1]), depth,
+                  same_scale=bool(sfm.diagnostics.get("warm_start") or sfm.diagnostics.get("anchored")))
+
     def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int, depth_frames: np.ndarray | None,
                     stamps: np.ndarray | None, gyro: GyroRotations | None) -> ClassicalInputs:
         images, K = check_clip(images, K)
@@ -301,10 +349,16 @@ class ClassicalBackbone(Backbone):
         tracks, keys, losses = self._track(gray, stamps)
         timings["tracks_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        kf = self.keyframes
+        anchor = None if kf is None else (lambda points: kf.anchors(gray, K, tracks, points, keys[0]))
         sfm = estimate_poses(tracks, K, known=self._known(tracks, keys[0]), bundle_adjust=self.bundle_adjust,
-                             gyro=gyro, gyro_sigma=self.gyro_sigma)
+                             gyro=gyro, gyro_sigma=self.gyro_sigma, anchor=anchor)
         timings["sfm_s"] = time.perf_counter() - t0
         self._keep_structure(sfm, tracks, keys[-1])
+        if kf is not None:
+            t0 = time.perf_counter()
+            self._extend_map(kf, sfm, gray[-1], keys)
+            timings["keyframes_s"] = time.perf_counter() - t0
 
         t_wc = sfm.t_wc
         depth, conf = np.ones((n, h, w), np.float32), np.zeros((n, h, w), np.float32)
@@ -327,12 +381,14 @@ class ClassicalBackbone(Backbone):
             depth[swept], conf[swept] = d / s, c
             t_wc = t_wc / s
             sfm.diagnostics["scale_divisor"] = s
+        units_link = self._units_link(sfm, keys)
         dt = self.dtype
         R, t, depth, conf = (torch.as_tensor(a, dtype=dt, device=dev) for a in (sfm.R_wc, t_wc, depth, conf))
         inputs = ClassicalInputs(
             images=img.to(dt), K=K_t.to(dt), src_hw=src_hw, base_R_wc=R, base_t_wc=t, base_depth=depth, base_conf=conf,
             corrections=Corrections(n, (h, w), device=dev, dtype=dt), status=sfm.status, reason=sfm.reason,
-            diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers, "front_end": asdict(losses)})
+            diagnostics={**sfm.diagnostics, **timings, "mvs_workers": workers, "front_end": asdict(losses)},
+            units_link=units_link)
         self.last_inputs = inputs
         return inputs
 
@@ -354,7 +410,7 @@ class ClassicalBackbone(Backbone):
         else:
             tds = UNKNOWN_TRAJ_DEPTH_SIGMA
         return Prediction(R_wc=R, t_wc=t, K=inputs.K, depth=depth, conf=inputs.base_conf, metric=False,
-                          traj_depth_sigma=tds)
+                          traj_depth_sigma=tds, units_link=inputs.units_link)
 
     def param_groups(self) -> ParamGroups:
         """camera_head: [rotvec, trans]; depth_head: [log_depth] of the last preprocessed clip (empty before)."""

@@ -27,14 +27,17 @@ from vi3_core.backbones.base import GyroRotations
 
 class Adjusted(NamedTuple):
     """``bundle_adjust``'s result: R_wc [n,3,3], t_wc [n,3] camera-to-world, points [m,3] (NaN: left out), the gyro
-    bias [3] rad/s the rotations fit (None without the prior) and ``traj_depth_sigma``, the 1-sigma of the log of
-    the trajectory's scale against the depth's (``_trajectory_depth_sigma``; NaN: not computed)."""
+    bias [3] rad/s the rotations fit (None without the prior), ``traj_depth_sigma``, the 1-sigma of the log of
+    the trajectory's scale against the depth's (``_trajectory_depth_sigma``; NaN: not computed) and, with held
+    cameras, ``held_scale_sigma``, the 1-sigma of the log of the clip's scale against theirs (``_held_scale_sigma``;
+    NaN: none held, or not computed)."""
 
     R_wc: np.ndarray
     t_wc: np.ndarray
     points: np.ndarray
     bias: np.ndarray | None
     traj_depth_sigma: float
+    held_scale_sigma: float = float("nan")
 
 
 def _residuals(R_cw, t_cw, X, uv, vis, K):
@@ -87,11 +90,12 @@ class _GyroPrior:
         return Hcc, bc, Hcb, Hbb, bb
 
 
-def _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K, huber_px):
+def _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K, huber_px, nc):
     """The reprojection error's Gauss-Newton normal equations at cameras R_cw [n,3,3], t_cw [n,3] with camera-frame
     points Xc [m,n,3], depths z and residuals r (``_residuals``), Huber-weighted at ``huber_px`` (1 px: unit weight):
-    the weights w [m,n] and the blocks Hcc [n-1,6,6], Hll [m,3,3], Hcl [m,n-1,6,3], bc [n-1,6], bl [m,3] of cameras
-    1..n-1 (rotation, then translation: left perturbations) and points (frame 0 is the gauge)."""
+    the weights w [m,n] and the blocks Hcc [nc-1,6,6], Hll [m,3,3], Hcl [m,nc-1,6,3], bc [nc-1,6], bl [m,3] of cameras
+    1..nc-1 (rotation, then translation: left perturbations) and points (frame 0 is the gauge; cameras nc.. are held,
+    their observations constrain the points only)."""
     # Jp = d(pixel)/d(Xc) [m,n,2,3]; the left perturbation Xc' = exp(dw) R X + t + dt gives d/d(dw) = -Jp hat(R X)
     # (row-wise (R X) x Jp) and d/d(dt) = Jp; d/dX = Jp R.
     fx, fy = K[0, 0], K[1, 1]
@@ -102,12 +106,13 @@ def _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K, huber_px):
     Jc = torch.cat([torch.linalg.cross((Xc - t_cw)[..., None, :].expand_as(Jp), Jp), Jp], -1)
     Jl = torch.einsum("mnri,nij->mnrj", Jp, R_cw)
     WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
-    Hcc = torch.einsum("mnri,mnrj->nij", WJc[:, 1:], Jc[:, 1:])  # [n-1,6,6]
+    WJc, Jc = WJc[:, 1:nc], Jc[:, 1:nc]
+    Hcc = torch.einsum("mnri,mnrj->nij", WJc, Jc)  # [nc-1,6,6]
     Hll = torch.einsum("mnri,mnrj->mij", WJl, Jl)  # [m,3,3]
     # Sums of outer products over the two residual rows, written out (batched 6x2 @ 2x3 products are slow).
-    Hcl = torch.addcmul(WJc[:, 1:, 0, :, None] * Jl[:, 1:, 0, None, :], WJc[:, 1:, 1, :, None],
-                        Jl[:, 1:, 1, None, :])  # [m,n-1,6,3]
-    bc = torch.einsum("mnri,mnr->ni", WJc[:, 1:], r[:, 1:])
+    Hcl = torch.addcmul(WJc[..., 0, :, None] * Jl[:, 1:nc, 0, None, :], WJc[..., 1, :, None],
+                        Jl[:, 1:nc, 1, None, :])  # [m,nc-1,6,3]
+    bc = torch.einsum("mnri,mnr->ni", WJc, r[:, 1:nc])
     bl = torch.einsum("mnri,mnr->mi", WJl, r)
     return w, Hcc, Hll, Hcl, bc, bl
 
@@ -134,6 +139,24 @@ def _reduced(Hcc: torch.Tensor, Hll_inv: torch.Tensor, Hcl: torch.Tensor,
     return M, Y
 
 
+def _information(pixel: tuple, r: torch.Tensor, vis: torch.Tensor, prior: tuple | None,
+                 n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple | None] | None:
+    """The Gauss-Newton information of an adjustment of n cameras (the first the gauge) at the pixel noise its
+    residuals r [m,N,2] show (Huber-weighted, dof-corrected): ``pixel``'s Hcc, Hll, Hcl (w, Hcc, Hll, Hcl of
+    ``_pixel_normal``) divided by that variance, the prior's (``_GyroPrior.normal``'s Hcc, Hcb, Hbb, or None) added,
+    with its bias blocks (Hcb, Hbb) or None; None where no degrees of freedom are left or a camera's centre is free."""
+    w, Hcc, Hll, Hcl = pixel
+    dof = 2 * int(vis.sum()) - 6 * (n - 1) - 3 * Hll.shape[0]
+    if dof <= 0 or bool((Hcc.diagonal(dim1=1, dim2=2)[:, 3:] <= 0).any()):
+        return None
+    var_px = float((w * (r**2).sum(-1)).sum()) / dof
+    Hcc, Hll, Hcl = Hcc / var_px, Hll / var_px, Hcl / var_px
+    if prior is None:
+        return Hcc, Hll, Hcl, None
+    Hp, Hcb, Hbb = prior
+    return Hcc + Hp, Hll, Hcl, (Hcb, Hbb)
+
+
 def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Tensor, z: torch.Tensor,
                             r: torch.Tensor, vis: torch.Tensor, pixel: tuple, prior: tuple | None) -> float:
     """The 1-sigma of log(trajectory scale / depth scale) of the adjusted clip (cameras R_cw [n,3,3], t_cw [n,3],
@@ -148,26 +171,19 @@ def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Te
     far the camera moved against how far the scene is, and the metric fit (which reads the trajectory) and the scale
     links (which read the depth) then see different scales. NaN where it cannot be computed: fewer than 3 frames, no
     degrees of freedom left, or a frame that no point constrains (its centre is free)."""
-    n, m = R_cw.shape[0], Xc.shape[0]
+    n = R_cw.shape[0]
     f64 = Xc.dtype
-    w, Hcc, Hll, Hcl = pixel
-    obs = int(vis.sum())
-    dof = 2 * obs - 6 * (n - 1) - 3 * m
-    if n < 3 or dof <= 0 or bool((Hcc.diagonal(dim1=1, dim2=2)[:, 3:] <= 0).any()):
+    info = _information(pixel, r, vis, prior, n) if n >= 3 else None
+    if info is None:
         return float("nan")
-    var_px = float((w * (r**2).sum(-1)).sum()) / dof
-    Hcc, Hll, Hcl = Hcc / var_px, Hll / var_px, Hcl / var_px
-    bias = None
-    if prior is not None:
-        Hp, Hcb, Hbb = prior
-        Hcc, bias = Hcc + Hp, (Hcb, Hbb)
+    Hcc, Hll, Hcl, bias = info
     # q's gradient: centres c_i = -R_i^T t_i about their mean p_i move by -R_i^T (dt_i - dw_i x t_i); depths by
     # e_z . (dw_i x P + dt_i + R_i dX_m) with P = R_i X_m.
     c = -(R_cw.transpose(1, 2) @ t_cw[..., None])[..., 0]
     p = c - c.mean(0)
     Rp = (R_cw @ p[..., None])[..., 0][1:]
     spread = float((p**2).sum())
-    inv_z = torch.where(vis, 1.0 / z, 0.0) / obs  # [m,n]
+    inv_z = torch.where(vis, 1.0 / z, 0.0) / int(vis.sum())  # [m,n]
     e_z = torch.tensor([0.0, 0.0, 1.0], dtype=f64)
     P = Xc - t_cw
     gc = torch.zeros(n - 1, 6, dtype=f64)
@@ -190,6 +206,33 @@ def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Te
     return math.sqrt(var) if var >= 0 and math.isfinite(var) else float("nan")
 
 
+def _held_scale_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, r: torch.Tensor, vis: torch.Tensor, pixel: tuple,
+                      prior: tuple | None, n: int) -> float:
+    """The 1-sigma of the log of the scale of the clip's trajectory (its first ``n`` cameras, the first held as the
+    gauge) where held cameras fix the scale gauge, from the Gauss-Newton information of the last linearisation at the
+    pixel noise the residuals r [m,N,2] show (``pixel``: w, Hcc, Hll, Hcl of ``_pixel_normal`` over all N cameras;
+    ``prior``: ``_GyroPrior.normal``'s Hcc, Hcb, Hbb, or None). The scale is q_t, the least-squares scale change of
+    the clip's camera centres about the first's, c_i = -R_i^T t_i moving by -R_i^T (dt_i - dw_i x t_i); it depends on
+    no point, so its variance is g^T M^-1 g with M the reduced camera system. NaN where it cannot be computed."""
+    f64 = t_cw.dtype
+    info = _information(pixel, r, vis, prior, n) if n >= 2 else None
+    if info is None:
+        return float("nan")
+    Hcc, Hll, Hcl, bias = info
+    c = -(R_cw[:n].transpose(1, 2) @ t_cw[:n, :, None])[..., 0]
+    p = c - c[0]
+    spread = float((p**2).sum())
+    if spread <= 0:
+        return float("nan")
+    Rp = (R_cw[1:n] @ p[1:, :, None])[..., 0]
+    g = torch.cat([torch.linalg.cross(t_cw[1:n], Rp), -Rp], 1).reshape(-1) / spread
+    M, _ = _reduced(Hcc, _inv3(Hll + 1e-9 * torch.eye(3, dtype=f64)), Hcl, bias)
+    if bias is not None:
+        g = torch.cat([g, torch.zeros(3, dtype=f64)])
+    var = float(g @ torch.linalg.solve(M, g))
+    return math.sqrt(var) if var >= 0 and math.isfinite(var) else float("nan")
+
+
 def _inv3(A: torch.Tensor) -> torch.Tensor:
     """Inverses [...,3,3] of invertible 3x3 matrices A [...,3,3] by the adjugate (elementwise, no LAPACK call)."""
     c0 = torch.linalg.cross(A[..., 1, :], A[..., 2, :])
@@ -201,12 +244,14 @@ def _inv3(A: torch.Tensor) -> torch.Tensor:
 
 def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
                   K: np.ndarray, *, iterations: int = 20, huber_px: float = 1.0, tol: float = 1e-4,
-                  gyro: GyroRotations | None = None,
-                  gyro_sigma: float = 0.0) -> Adjusted:
+                  gyro: GyroRotations | None = None, gyro_sigma: float = 0.0, held: int = 0) -> Adjusted:
     """Refine camera-to-world poses R_wc [n,3,3], t_wc [n,3] and points [m,3] (NaN rows are left out) against
     the observations uv [m,n,2] (pixels, where ``visible`` [m,n]), with ``gyro`` (its R_wc in the same world, the first
-    camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0 (``Adjusted``)."""
-    n = len(R_wc)
+    camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0 (``Adjusted``). The last
+    ``held`` cameras (keyframes of earlier clips) stay where they are: their observations hold the points, and with
+    them the scale gauge, to the keyframes'; the trajectory's sigma against the depth is the clip's own (its first
+    n - held cameras)."""
+    n = len(R_wc) - held
     pid = np.flatnonzero(np.isfinite(points[:, 0]))
     f64 = torch.float64
     X = torch.as_tensor(points[pid], dtype=f64)
@@ -217,18 +262,19 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     t_cw = -(R_cw @ torch.as_tensor(t_wc, dtype=f64)[..., None])[..., 0]
     eye6, eye3 = torch.eye(6, dtype=f64), torch.eye(3, dtype=f64)
     prior = _GyroPrior(gyro, gyro_sigma) if gyro is not None and gyro_sigma > 0 and n > 1 else None
+    clip = slice(0, n)
     d = np.zeros(3)
     lam = 1e-3
     Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K_t)
-    cost = _cost(r, vis, huber_px) + (prior.cost(R_cw, d) if prior else 0.0)
+    cost = _cost(r, vis, huber_px) + (prior.cost(R_cw[clip], d) if prior else 0.0)
     linearise = True
     pixel = prior_blocks = None  # the last linearisation's blocks, for the sigma (none without an iteration)
     for _ in range(iterations):
         if linearise:
-            w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px)
+            w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px, n)
             pixel, prior_blocks = (w, Hcc, Hll, Hcl), None
             if prior is not None:
-                Hp, bp, Hcb, Hbb, bb = prior.normal(R_cw, d)
+                Hp, bp, Hcb, Hbb, bb = prior.normal(R_cw[clip], d)
                 Hcc, bc, prior_blocks = Hcc + Hp, bc + bp, (Hp, Hcb, Hbb)
         diag = Hcc.diagonal(dim1=1, dim2=2)[:, :, None]
         # a camera no point constrains any more (a long clip's frame whose points were all cleaned out) stays put
@@ -242,12 +288,12 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
         dd = sol[6 * (n - 1):].numpy()
         dl = -torch.einsum("mij,mj->mi", Hll_inv, bl + torch.einsum("maji,aj->mi", Hcl, dc))
         R_new, t_new = R_cw.clone(), t_cw.clone()
-        R_new[1:] = torch.from_numpy(so3.exp(dc[:, :3].numpy())) @ R_cw[1:]
-        t_new[1:] = t_cw[1:] + dc[:, 3:]
+        R_new[1:n] = torch.from_numpy(so3.exp(dc[:, :3].numpy())) @ R_cw[1:n]
+        t_new[1:n] = t_cw[1:n] + dc[:, 3:]
         X_new = X + dl
         d_new = d + dd if prior is not None else d
         Xc_new, z_new, r_new = _residuals(R_new, t_new, X_new, obs, vis, K_t)
-        cost_new = _cost(r_new, vis, huber_px) + (prior.cost(R_new, d_new) if prior else 0.0)
+        cost_new = _cost(r_new, vis, huber_px) + (prior.cost(R_new[clip], d_new) if prior else 0.0)
         linearise = cost_new < cost
         if linearise:
             done = cost - cost_new < tol * cost
@@ -257,10 +303,16 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
                 break
         else:
             lam *= 5.0
+    held_sigma = float("nan")
+    if held and pixel is not None:  # the clip's own blocks, the keyframes' observations left out
+        held_sigma = _held_scale_sigma(R_cw, t_cw, r, vis, _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px,
+                                                                          n)[:4], prior_blocks, n)
+        pixel = _pixel_normal(R_cw[clip], t_cw[clip], Xc[:, clip], z[:, clip], r[:, clip], vis[:, clip], K_t,
+                              huber_px, n)[:4]
     R_out = R_cw.transpose(1, 2)
     out = np.full_like(points, np.nan)
     out[pid] = X.numpy()
     return Adjusted(R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out,
                     gyro.bg + d if prior is not None else None,
-                    _trajectory_depth_sigma(R_cw, t_cw, Xc, z, r, vis, pixel, prior_blocks) if pixel is not None
-                    else float("nan"))
+                    _trajectory_depth_sigma(R_cw[clip], t_cw[clip], Xc[:, clip], z[:, clip], r[:, clip], vis[:, clip],
+                                            pixel, prior_blocks) if pixel is not None else float("nan"), held_sigma)

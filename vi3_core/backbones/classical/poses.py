@@ -17,13 +17,16 @@ motion below ``stationary_px`` -> ``stationary`` (identity poses); motion explai
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from vi3_core.backbones.base import GyroRotations
+from vi3_core.backbones.classical.bundle import Adjusted
 from vi3_core.backbones.classical.bundle import bundle_adjust as refine
+from vi3_core.backbones.classical.keyframes import Anchors
 from vi3_core.backbones.classical.tracks import Tracks
 
 OK = "ok"
@@ -159,15 +162,40 @@ def _register(uv: np.ndarray, visible: np.ndarray, K: np.ndarray, R_wc: np.ndarr
     return None
 
 
+def _anchored(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
+              K: np.ndarray, found: Anchors, *, iterations: int, gyro: GyroRotations | None, gyro_sigma: float,
+              max_reproj_px: float) -> tuple[Adjusted, int]:
+    """The bundle adjustment of the clip (R_wc [n,3,3], t_wc [n,3], points [m,3], uv [m,n,2], ``visible`` [m,n])
+    with the keyframes of ``found`` held, its keyframe observations that miss by more than ``max_reproj_px`` after
+    a first pass dropped before a second, shorter one (it starts at the first's optimum); returns it (the clip's
+    cameras only) and the keyframe observations kept."""
+    n = len(R_wc)
+    R_all, t_all = np.concatenate([R_wc, found.R_wc]), np.concatenate([t_wc, found.t_wc])
+    uv_all = np.concatenate([uv, found.uv], 1)
+    adjusted = refine(R_all, t_all, points, uv_all, np.isfinite(uv_all[..., 0]), K, iterations=iterations,
+                      gyro=gyro, gyro_sigma=gyro_sigma, held=len(found.R_wc))
+    proj, _ = project(adjusted.points, R_all[n:], t_all[n:], K)
+    miss = ~(np.linalg.norm(proj - found.uv, axis=-1) <= max_reproj_px) & np.isfinite(found.uv[..., 0])
+    if miss.any():
+        uv_all[:, n:][miss] = np.nan
+        adjusted = refine(adjusted.R_wc, adjusted.t_wc, adjusted.points, uv_all, np.isfinite(uv_all[..., 0]), K,
+                          iterations=max(iterations // 4, 1), gyro=gyro, gyro_sigma=gyro_sigma, held=len(found.R_wc))
+    kept = int(np.isfinite(uv_all[:, n:, 0]).sum())
+    return adjusted._replace(R_wc=adjusted.R_wc[:n], t_wc=adjusted.t_wc[:n]), kept
+
+
 def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = None, stationary_px: float = 0.5,
                    min_parallax_px: float = 1.0, min_tracks: int = 30, ransac_px: float = 1.0,
                    max_reproj_px: float = 3.0, min_angle_deg: float = 0.3, bundle_adjust: bool = True,
-                   ba_iterations: int = 20, gyro: GyroRotations | None = None, gyro_sigma: float = 0.0) -> SfmResult:
+                   ba_iterations: int = 20, gyro: GyroRotations | None = None, gyro_sigma: float = 0.0,
+                   anchor: Callable[[np.ndarray], Anchors | None] | None = None) -> SfmResult:
     """Structure from motion over the clip (see the module docstring). ``K`` [3,3] of the tracked images; ``known``
     [m,3]: points of the tracks (NaN where unknown) from the clip before, in this clip's world, used in place of a
     two-view start when at least ``min_tracks`` of them are seen in the first frame; ``gyro``, ``gyro_sigma``: the
     bundle adjustment's rotation prior (``bundle.bundle_adjust``; the gyro bias it fits is in the diagnostics,
-    ``gyro_bias``)."""
+    ``gyro_bias``); ``anchor``: the keyframes' observations of the clip's points [m,3] before the bundle adjustment
+    (``keyframes.KeyframeMap.anchors``), which then holds the keyframes where at least ``min_tracks`` are found
+    (``anchored``: how many it kept)."""
     uv, visible = tracks.uv, tracks.visible
     n = uv.shape[1]
     eye, zero = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
@@ -229,8 +257,14 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = 
     points = triangulate(uv, visible, R_wc, t_wc, K)
     points = _clean_points(np.where(np.isfinite(points[:, :1]), points, carried), uv, visible, R_wc, t_wc, K, **final)
     if bundle_adjust:
-        adjusted = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations, gyro=gyro,
-                          gyro_sigma=gyro_sigma)
+        found = anchor(points) if anchor is not None else None
+        if found is not None and found.count >= min_tracks:
+            adjusted, diag["anchored"] = _anchored(R_wc, t_wc, points, uv, visible, K, found, iterations=ba_iterations,
+                                                   gyro=gyro, gyro_sigma=gyro_sigma, max_reproj_px=max_reproj_px)
+            diag["held_scale_sigma"] = adjusted.held_scale_sigma
+        else:
+            adjusted = refine(R_wc, t_wc, points, uv, visible, K, iterations=ba_iterations, gyro=gyro,
+                              gyro_sigma=gyro_sigma)
         R_wc, t_wc, points = adjusted.R_wc, adjusted.t_wc, adjusted.points
         if adjusted.bias is not None:
             diag["gyro_bias"] = adjusted.bias.tolist()
