@@ -16,13 +16,14 @@ number of blocks, with ``link_sigma_floor`` for the errors no spread within one 
 shared frames): the ratio of the norms of the first-to-last displacement, with the clips' own visual noise. When both
 exist they must agree within ``AGREE_SIGMA`` sigma, else the link is refused; agreeing, they are combined by their
 weights. The backbone's own ratio, to the clip the shared frames came from, joins them on the same terms (its sigma
-with the floor).
+with the floor; against the depth, also within both clips' trajectory-against-depth sigmas).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from itertools import combinations
 
 import numpy as np
 
@@ -200,28 +201,16 @@ def measure_link(shared: SharedFrames, geometry: Geometry, sigma_v: float, *, si
         found["poses"] = (p[0], math.hypot(p[1], sigma_floor))
     u = geometry.units_link
     if u is not None and u.prev_start == shared.clip_start:
-        return _with_units(found, (u.log_ratio, math.hypot(u.sigma, sigma_floor)), k, shared, geometry)
+        found["units"] = (u.log_ratio, math.hypot(u.sigma, sigma_floor))
     if not found:
         return "; ".join(why)
-    if len(found) == 2 and _apart(found["depth"], found["poses"]):
-        return _disagree("depth", found["depth"], "poses", found["poses"])
+    for a, b in combinations(found, 2):
+        # the depth ratio reads the two clips' plane sweeps, the units their trajectories: apart by both clips' own
+        # trajectory against their depth as well
+        other = (geometry.traj_depth_sigma, shared.traj_depth_sigma) if {a, b} == {"depth", "units"} else ()
+        if _apart(found[a], found[b], *other):
+            return _disagree(a, found[a], b, found[b])
     return MeasuredLink(ScaleLink(*_combined(found)), k, "+".join(found), shared.clip_start)
-
-
-def _with_units(found: dict[str, tuple[float, float]], units: tuple[float, float], k: int, shared: SharedFrames,
-                geometry: Geometry) -> MeasuredLink | str:
-    """The link of a clip whose backbone says how its units moved (``units``: log ratio, sigma with the floor): those
-    units and what ``found`` has (the shared frame's depth, their displacement), weighted by their sigmas, where they
-    agree within ``AGREE_SIGMA`` of their sigmas (the depth's and the units' also of the two clips' trajectory against
-    their depth: the depth ratio reads the two clips' plane sweeps, the units their trajectories), else refused."""
-    if "depth" in found and _apart(found["depth"], units, geometry.traj_depth_sigma, shared.traj_depth_sigma):
-        return _disagree("depth", found["depth"], "units", units)
-    parts = {**({"depth": found["depth"]} if "depth" in found else {}), "units": units}
-    if "poses" in found:
-        if _apart(units, found["poses"]):
-            return _disagree("units", units, "poses", found["poses"])
-        parts["poses"] = found["poses"]
-    return MeasuredLink(ScaleLink(*_combined(parts)), k, "+".join(parts), shared.clip_start)
 
 
 def _apart(x: tuple[float, float], y: tuple[float, float], *other_sigmas: float) -> bool:

@@ -130,6 +130,12 @@ def _depth_range(sfm: SfmResult, visible: np.ndarray, K: np.ndarray, *, margin: 
     return float(np.percentile(z, 1)) / margin, float(np.percentile(z, 99)) * margin
 
 
+def _kept_scale(sfm: SfmResult) -> bool:
+    """Whether the clip's structure from motion is at the scale of the clip before: the points it carried started
+    it (``warm_start``) or the keyframes held it (``anchored``)."""
+    return bool(sfm.diagnostics.get("warm_start") or sfm.diagnostics.get("anchored"))
+
+
 class ClassicalBackbone(Backbone):
     """Classical multi-view geometry behind the backbone contract (see the module docstring).
 
@@ -311,8 +317,7 @@ class ClassicalBackbone(Backbone):
         if not sfm.ok or self.keyframes is None:
             return None
         s = float(sfm.diagnostics["scale_divisor"])
-        held = bool(sfm.diagnostics.get("anchored")) or bool(sfm.diagnostics.get("warm_start"))
-        if held:
+        if _kept_scale(sfm):
             self._units = (keys[0], keys[-1], s)
         formal = float(sfm.diagnostics.get("held_scale_sigma", float("nan")))
         if not sfm.diagnostics.get("anchored") or not math.isfinite(formal) or prev is None or prev[1] != keys[0]:
@@ -328,7 +333,7 @@ class ClassicalBackbone(Backbone):
         good = np.isfinite(sfm.points[:, 0])
         depth = float(np.median(np.linalg.norm(sfm.points[good] - sfm.t_wc[-1], axis=1))) if good.any() else 0.0
         kf.extend(gray_last, keys[-1], keys[0], so3.make_T(sfm.R_wc[-1], sfm.t_wc[-1]), depth,
-                  same_scale=bool(sfm.diagnostics.get("warm_start") or sfm.diagnostics.get("anchored")))
+                  same_scale=_kept_scale(sfm))
 
     def _preprocess(self, images: np.ndarray, K: np.ndarray, workers: int, depth_frames: np.ndarray | None,
                     stamps: np.ndarray | None, gyro: GyroRotations | None) -> ClassicalInputs:
