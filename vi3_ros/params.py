@@ -226,6 +226,8 @@ PARAMS: tuple[Param, ...] = (
           "cond/ttr steps, the classical backbone's tracking) and the classical backbone's plane-sweep threads, set "
           "once at start; 0: min(2, CPUs this process may use)",
           range=(0, 1024)),
+    Param("classical_keyframes", ModelOptions, "the classical backbone holds its scale across clips with keyframes "
+          "of the clips before (false: each clip's scale is its own; about a sixth less CPU per clip)"),
     Param("mode", StreamOptions, "refinement after the fast init result: init (none), cond (IMU-conditioned), ttr "
           "(test-time refinement)", choices=MODES),
     Param("backbone_delay", ModelOptions, "s added to every clip's processing before the backbone, to emulate a "

@@ -397,7 +397,8 @@ def make_pipeline(settings: Settings, *, sink: OutputSink, types: MessageTypes, 
     CameraInfo and /tf_static); ``clock``: see ``Pipeline``."""
     model, inputs = settings.model, settings.inputs
     if backbone is None:
-        backbone = make_backbone(model.backbone, device=model.device, checkpoint=model.checkpoint or None)
+        backbone = make_backbone(model.backbone, device=model.device, checkpoint=model.checkpoint or None,
+                                 **model.backbone_options())
     calibration = Calibration(load_calib(inputs.calib_file) if inputs.calib_file else None)
     return Pipeline(settings, backbone=backbone, calibration=calibration, sink=sink, types=types,
                     synchronous=synchronous, on_report=on_report, clock=clock)

@@ -132,7 +132,7 @@ def bench_pipeline(args: argparse.Namespace) -> dict:
     imu = _input_imu(inp)  # read first: an input without IMU fails before the replays
     recording = Recording()
     inner = make_backbone(settings.model.backbone, device=settings.model.device,
-                          checkpoint=settings.model.checkpoint or None)
+                          checkpoint=settings.model.checkpoint or None, **settings.model.backbone_options())
     cpu, runs = [], []
     with tempfile.TemporaryDirectory(prefix="vi3-bench-pipeline-") as tmp:
         replay(inp, Path(tmp) / "recorded.mcap", settings=settings, progress=False,

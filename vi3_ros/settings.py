@@ -103,14 +103,30 @@ class FlightOptions:
 
 @dataclass(frozen=True)
 class ModelOptions:
-    """The backbone: its name, torch device and checkpoint, the process's torch threads (0: automatic), and a delay
-    (s) added before it on every clip (testing a slower model)."""
+    """The backbone: its name, torch device and checkpoint, the process's torch threads (0: automatic), a delay (s)
+    added before it on every clip (testing a slower model), and whether the ``classical`` backbone holds its scale
+    across clips with keyframes (``ClassicalBackbone``'s ``keyframes``)."""
 
     backbone: str = "classical"
     device: str = "cpu"
     checkpoint: str = ""
     threads: int = 0
     backbone_delay: float = 0.0
+    classical_keyframes: bool = True
+
+    def __post_init__(self) -> None:
+        self.backbone_options()
+
+    def backbone_options(self, name: str | None = None) -> dict[str, Any]:
+        """``make_backbone``'s options for backbone ``name`` (None: this one's): the classical backbone's
+        ``keyframes``; ValueError where an option is set that the backbone does not take."""
+        name = name or self.backbone
+        if name == "classical":
+            return {"keyframes": self.classical_keyframes}
+        if not self.classical_keyframes:
+            raise ValueError(f"classical_keyframes is false, but the backbone is {name}: it applies to the classical "
+                             "backbone only")
+        return {}
 
 
 @dataclass(frozen=True)

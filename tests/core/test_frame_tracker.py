@@ -237,9 +237,10 @@ def test_a_camera_no_point_constrains_is_left_where_it_was():
     uv[:, -1], visible[:, -1] = np.nan, False
     points = triangulate(uv, visible, R_wc, t_wc, K)
     t_start = t_wc + np.random.default_rng(1).normal(scale=0.002, size=t_wc.shape) * (np.arange(8) > 0)[:, None]
-    R_out, t_out, _, bias, traj_depth_sigma, held_sigma = bundle_adjust(R_wc, t_start, points, uv, visible, K)
-    assert bias is None  # no gyro prior
-    assert np.isnan(traj_depth_sigma) and np.isnan(held_sigma)  # that centre is free; and no camera is held
+    out = bundle_adjust(R_wc, t_start, points, uv, visible, K)
+    R_out, t_out = out.R_wc, out.t_wc
+    assert out.bias is None  # no gyro prior
+    assert np.isnan(out.traj_depth_sigma) and np.isnan(out.held_scale_sigma)  # that centre is free; none held
     unchanged = bundle_adjust(R_wc, t_start, points, uv, visible, K, iterations=0)  # no iteration: the input back
     np.testing.assert_allclose(unchanged.t_wc, t_start, atol=1e-12)
     assert np.isnan(unchanged.traj_depth_sigma)
@@ -277,6 +278,29 @@ def test_held_keyframes_give_the_clip_their_scale():
     # held cameras is small (0.2 px noise, a hundred points) and none where nothing is held
     assert anchored.traj_depth_sigma == pytest.approx(alone.traj_depth_sigma, rel=0.3)
     assert 1e-4 < anchored.held_scale_sigma < 0.01 and np.isnan(alone.held_scale_sigma)
+
+
+def test_held_observations_that_miss_are_dropped_before_a_second_pass():
+    """The clip of the test above started at 1.3 times the true scale with frames 0 and 1 held, 30 of their
+    observations moved 15 px (keyframe matches gone wrong): after a first pass those miss by more than
+    ``held_max_px`` and are dropped, none of the others, and the second pass brings the clip to the true scale within
+    1 %; with no bound all are kept."""
+    tracks, K, R_wc, t_wc = _turning_tracks(n=12)
+    R_true, t_true = R_wc[2].T @ R_wc, (t_wc - t_wc[2]) @ R_wc[2]
+    order = np.r_[2:12, 0, 1]
+    shared = tracks.visible[:, 2:].sum(1) >= 2
+    uv, visible = tracks.uv[shared][:, order].copy(), tracks.visible[shared][:, order]
+    t_start = t_true[order].copy()
+    t_start[:10] *= 1.3
+    points = triangulate(uv[:, :10], visible[:, :10], R_true[order[:10]], t_start[:10], K)
+    seen = np.flatnonzero(visible[:, 10] & np.isfinite(points[:, 0]))
+    uv[seen[:30], 10] += 15.0
+    held_seen = int((visible[:, 10:] & np.isfinite(points[:, :1])).sum())
+    out = bundle_adjust(R_true[order], t_start, points, uv, visible, K, held=2, held_max_px=3.0)
+    assert out.held_observations == held_seen - 30
+    scale = np.linalg.norm(out.t_wc[9]) / np.linalg.norm(t_true[11])
+    assert scale == pytest.approx(1.0, rel=0.01)
+    assert bundle_adjust(R_true[order], t_start, points, uv, visible, K, held=2).held_observations == held_seen
 
 
 def test_the_held_scale_sigma_is_what_the_pixel_noise_gives():
@@ -365,8 +389,9 @@ def test_the_bundle_adjustment_fits_the_gyro_bias_within_its_estimates_sigma():
     R_start = np.stack([R_true[0]] + [so3.exp(rng.normal(scale=np.radians(0.5), size=3)) @ R for R in R_true[1:]])
     for bg_sigma in (0.01, 1e-5):
         gyro, true_bg = _biased_gyro(R_true, bg_sigma)
-        R, _, _, bias, _, _ = bundle_adjust(R_start, t_true.copy(), points, tracks.uv, tracks.visible, K, gyro=gyro,
-                                         gyro_sigma=np.radians(0.05))
+        out = bundle_adjust(R_start, t_true.copy(), points, tracks.uv, tracks.visible, K, gyro=gyro,
+                            gyro_sigma=np.radians(0.05))
+        R, bias = out.R_wc, out.bias
         if bg_sigma == 0.01:
             assert max(np.degrees(so3.angle(R_true[i].T @ R[i])) for i in range(len(R))) < 0.05
             np.testing.assert_allclose(bias, true_bg, atol=1.5e-3)

@@ -22,7 +22,8 @@ from vi3_ros.calibration import Calibration, calib_from_camera_info
 from vi3_ros.clip_buffer import ClipBufferOptions
 from vi3_ros.commands.replay import register, settings_from_args
 from vi3_ros.params import BY_NAME, PARAMS, load_yaml, markdown_table, parameter_values, parse_assignment, resolve
-from vi3_ros.pipeline import buffer_options
+from vi3_ros.pipeline import buffer_options, make_pipeline
+from vi3_ros.replay import DiscardSink
 from vi3_ros.settings import Settings
 
 REPO = Path(__file__).resolve().parents[2]
@@ -92,6 +93,18 @@ def test_realsense_config_loads_and_learns_the_noise_levels():
     assert settings.init.noise_levels and settings.init.accel_A is None
     assert settings.inputs.imu_topic == "/camera/camera/imu" and not settings.inputs.use_tf_static
     assert resolve().init.noise_levels is False  # the default keeps the model's levels
+
+
+def test_classical_keyframes_reach_the_backbone():
+    """``classical_keyframes``: the pipeline's classical backbone holds its scale with keyframes, or (false) has no
+    keyframe map; another backbone refuses false by name (it has no such option)."""
+    for on in (True, False):
+        pipeline = make_pipeline(resolve({"classical_keyframes": on}), sink=DiscardSink(), types=jazzy_types(),
+                                 synchronous=True)
+        assert (pipeline.stream.backbone.keyframes is not None) is on
+    assert resolve({"backbone": "vggt"}).model.backbone_options() == {}
+    with pytest.raises(DataError, match="classical_keyframes is false, but the backbone is vggt"):
+        resolve({"classical_keyframes": False, "backbone": "vggt"})
 
 
 def test_bad_parameter_file(tmp_path):

@@ -340,7 +340,8 @@ def _backbone(args: argparse.Namespace):
         raise ValueError("--gt-noise, --gt-depth-noise and --gt-seed need --backbone gt (the ground-truth pose "
                          "instrument)")
     backbone_class(args.backbone)  # a known name
-    return functools.partial(make_backbone, args.backbone, device=args.device, checkpoint=args.checkpoint)
+    return functools.partial(make_backbone, args.backbone, device=args.device, checkpoint=args.checkpoint,
+                             **args.settings.model.backbone_options(args.backbone))
 
 
 def _prepare(args: argparse.Namespace) -> tuple:

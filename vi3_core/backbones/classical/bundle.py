@@ -30,7 +30,7 @@ class Adjusted(NamedTuple):
     bias [3] rad/s the rotations fit (None without the prior), ``traj_depth_sigma``, the 1-sigma of the log of
     the trajectory's scale against the depth's (``_trajectory_depth_sigma``; NaN: not computed) and, with held
     cameras, ``held_scale_sigma``, the 1-sigma of the log of the clip's scale against theirs (``_held_scale_sigma``;
-    NaN: none held, or not computed)."""
+    NaN: none held, or not computed) and ``held_observations``, their observations kept."""
 
     R_wc: np.ndarray
     t_wc: np.ndarray
@@ -38,6 +38,7 @@ class Adjusted(NamedTuple):
     bias: np.ndarray | None
     traj_depth_sigma: float
     held_scale_sigma: float = float("nan")
+    held_observations: int = 0
 
 
 def _residuals(R_cw, t_cw, X, uv, vis, K):
@@ -103,10 +104,10 @@ def _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K, huber_px, nc):
     Jp = torch.zeros(Xc.shape[:2] + (2, 3), dtype=Xc.dtype)
     Jp[..., 0, 0], Jp[..., 1, 1] = fx / z, fy / z
     Jp[..., 0, 2], Jp[..., 1, 2] = -fx * Xc[..., 0] / z**2, -fy * Xc[..., 1] / z**2
-    Jc = torch.cat([torch.linalg.cross((Xc - t_cw)[..., None, :].expand_as(Jp), Jp), Jp], -1)
+    Jpc = Jp[:, 1:nc]  # the cameras solved for
+    Jc = torch.cat([torch.linalg.cross((Xc[:, 1:nc] - t_cw[1:nc])[..., None, :].expand_as(Jpc), Jpc), Jpc], -1)
     Jl = torch.einsum("mnri,nij->mnrj", Jp, R_cw)
-    WJc, WJl = w[..., None, None] * Jc, w[..., None, None] * Jl
-    WJc, Jc = WJc[:, 1:nc], Jc[:, 1:nc]
+    WJc, WJl = w[:, 1:nc, None, None] * Jc, w[..., None, None] * Jl
     Hcc = torch.einsum("mnri,mnrj->nij", WJc, Jc)  # [nc-1,6,6]
     Hll = torch.einsum("mnri,mnrj->mij", WJl, Jl)  # [m,3,3]
     # Sums of outer products over the two residual rows, written out (batched 6x2 @ 2x3 products are slow).
@@ -242,36 +243,40 @@ def _inv3(A: torch.Tensor) -> torch.Tensor:
     return torch.stack([c0, c1, c2], -1) / det[..., None, None]
 
 
-def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
-                  K: np.ndarray, *, iterations: int = 20, huber_px: float = 1.0, tol: float = 1e-4,
-                  gyro: GyroRotations | None = None, gyro_sigma: float = 0.0, held: int = 0) -> Adjusted:
-    """Refine camera-to-world poses R_wc [n,3,3], t_wc [n,3] and points [m,3] (NaN rows are left out) against
-    the observations uv [m,n,2] (pixels, where ``visible`` [m,n]), with ``gyro`` (its R_wc in the same world, the first
-    camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0 (``Adjusted``). The last
-    ``held`` cameras (keyframes of earlier clips) stay where they are: their observations hold the points, and with
-    them the scale gauge, to the keyframes'; the trajectory's sigma against the depth is the clip's own (its first
-    n - held cameras)."""
-    n = len(R_wc) - held
-    pid = np.flatnonzero(np.isfinite(points[:, 0]))
-    f64 = torch.float64
-    X = torch.as_tensor(points[pid], dtype=f64)
-    obs = torch.as_tensor(np.nan_to_num(uv[pid]), dtype=f64)
-    vis = torch.as_tensor(visible[pid])
-    K_t = torch.as_tensor(K, dtype=f64)
-    R_cw = torch.as_tensor(R_wc, dtype=f64).transpose(1, 2).contiguous()
-    t_cw = -(R_cw @ torch.as_tensor(t_wc, dtype=f64)[..., None])[..., 0]
+class _Solved(NamedTuple):
+    """``_levenberg_marquardt``'s end: cameras R_cw [N,3,3], t_cw [N,3], points X [m,3], the gyro bias correction d
+    [3] rad/s, ``_residuals``' Xc, z, r there, and the last linearisation's blocks (``pixel``: w, Hcc, Hll, Hcl of
+    ``_pixel_normal``; ``prior``: Hcc, Hcb, Hbb of ``_GyroPrior.normal``; None: none made, or no prior)."""
+
+    R_cw: torch.Tensor
+    t_cw: torch.Tensor
+    X: torch.Tensor
+    d: np.ndarray
+    Xc: torch.Tensor
+    z: torch.Tensor
+    r: torch.Tensor
+    pixel: tuple | None
+    prior: tuple | None
+
+
+def _levenberg_marquardt(R_cw: torch.Tensor, t_cw: torch.Tensor, X: torch.Tensor, obs: torch.Tensor,
+                         vis: torch.Tensor, K: torch.Tensor, n: int, prior: _GyroPrior | None, *, iterations: int,
+                         huber_px: float, tol: float) -> _Solved:
+    """At most ``iterations`` Levenberg-Marquardt steps of cameras 1..n-1 and the points from R_cw, t_cw, X against
+    the pixels obs [m,N,2] where ``vis`` [m,N] (cameras n.. held), with the gyro ``prior`` on the clip's rotations,
+    its bias correction starting at zero; stops where a step lowers the cost by less than ``tol`` of it."""
+    f64 = X.dtype
     eye6, eye3 = torch.eye(6, dtype=f64), torch.eye(3, dtype=f64)
-    prior = _GyroPrior(gyro, gyro_sigma) if gyro is not None and gyro_sigma > 0 and n > 1 else None
     clip = slice(0, n)
     d = np.zeros(3)
     lam = 1e-3
-    Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K_t)
+    Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K)
     cost = _cost(r, vis, huber_px) + (prior.cost(R_cw[clip], d) if prior else 0.0)
     linearise = True
-    pixel = prior_blocks = None  # the last linearisation's blocks, for the sigma (none without an iteration)
+    pixel = prior_blocks = None
     for _ in range(iterations):
         if linearise:
-            w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px, n)
+            w, Hcc, Hll, Hcl, bc, bl = _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K, huber_px, n)
             pixel, prior_blocks = (w, Hcc, Hll, Hcl), None
             if prior is not None:
                 Hp, bp, Hcb, Hbb, bb = prior.normal(R_cw[clip], d)
@@ -292,7 +297,7 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
         t_new[1:n] = t_cw[1:n] + dc[:, 3:]
         X_new = X + dl
         d_new = d + dd if prior is not None else d
-        Xc_new, z_new, r_new = _residuals(R_new, t_new, X_new, obs, vis, K_t)
+        Xc_new, z_new, r_new = _residuals(R_new, t_new, X_new, obs, vis, K)
         cost_new = _cost(r_new, vis, huber_px) + (prior.cost(R_new[clip], d_new) if prior else 0.0)
         linearise = cost_new < cost
         if linearise:
@@ -303,16 +308,54 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
                 break
         else:
             lam *= 5.0
+    return _Solved(R_cw, t_cw, X, d, Xc, z, r, pixel, prior_blocks)
+
+
+@torch.inference_mode()
+def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
+                  K: np.ndarray, *, iterations: int = 20, huber_px: float = 1.0, tol: float = 1e-4,
+                  gyro: GyroRotations | None = None, gyro_sigma: float = 0.0, held: int = 0,
+                  held_max_px: float = math.inf) -> Adjusted:
+    """Refine camera-to-world poses R_wc [n,3,3], t_wc [n,3] and points [m,3] (NaN rows are left out) against
+    the observations uv [m,n,2] (pixels, where ``visible`` [m,n]), with ``gyro`` (its R_wc in the same world, the first
+    camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0 (``Adjusted``). The last
+    ``held`` cameras (keyframes of earlier clips) stay where they are: their observations hold the points, and with
+    them the scale gauge, to the keyframes'; those that miss by more than ``held_max_px`` after a first pass are
+    dropped before a second, shorter one (``iterations // 4``, started afresh from the first's optimum), and the
+    sigmas are computed once, at the end. The trajectory's sigma against the depth is the clip's own (its first
+    n - held cameras)."""
+    n = len(R_wc) - held
+    pid = np.flatnonzero(np.isfinite(points[:, 0]))
+    f64 = torch.float64
+    X = torch.as_tensor(points[pid], dtype=f64)
+    obs = torch.as_tensor(np.nan_to_num(uv[pid]), dtype=f64)
+    vis = torch.as_tensor(visible[pid])
+    K_t = torch.as_tensor(K, dtype=f64)
+    R_cw = torch.as_tensor(R_wc, dtype=f64).transpose(1, 2).contiguous()
+    t_cw = -(R_cw @ torch.as_tensor(t_wc, dtype=f64)[..., None])[..., 0]
+    prior = _GyroPrior(gyro, gyro_sigma) if gyro is not None and gyro_sigma > 0 and n > 1 else None
+    lm = dict(iterations=iterations, huber_px=huber_px, tol=tol)
+    s = _levenberg_marquardt(R_cw, t_cw, X, obs, vis, K_t, n, prior, **lm)
+    if held:
+        miss = vis[:, n:] & ~(s.r[:, n:].norm(dim=-1) <= held_max_px)
+        if bool(miss.any()):
+            vis = vis.clone()
+            vis[:, n:] &= ~miss
+            s = _levenberg_marquardt(s.R_cw, s.t_cw, s.X, obs, vis, K_t, n, prior,
+                                     **{**lm, "iterations": max(iterations // 4, 1)})
+    R_cw, t_cw, Xc, z, r, pixel = s.R_cw, s.t_cw, s.Xc, s.z, s.r, s.pixel
+    clip = slice(0, n)
     held_sigma = float("nan")
     if held and pixel is not None:  # the clip's own blocks, the keyframes' observations left out
         held_sigma = _held_scale_sigma(R_cw, t_cw, r, vis, _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px,
-                                                                          n)[:4], prior_blocks, n)
+                                                                          n)[:4], s.prior, n)
         pixel = _pixel_normal(R_cw[clip], t_cw[clip], Xc[:, clip], z[:, clip], r[:, clip], vis[:, clip], K_t,
                               huber_px, n)[:4]
     R_out = R_cw.transpose(1, 2)
     out = np.full_like(points, np.nan)
-    out[pid] = X.numpy()
+    out[pid] = s.X.numpy()
     return Adjusted(R_out.numpy(), (-(R_out @ t_cw[..., None])[..., 0]).numpy(), out,
-                    gyro.bg + d if prior is not None else None,
+                    gyro.bg + s.d if prior is not None else None,
                     _trajectory_depth_sigma(R_cw[clip], t_cw[clip], Xc[:, clip], z[:, clip], r[:, clip], vis[:, clip],
-                                            pixel, prior_blocks) if pixel is not None else float("nan"), held_sigma)
+                                            pixel, s.prior) if pixel is not None else float("nan"), held_sigma,
+                    int(vis[:, n:].sum()))

@@ -162,26 +162,19 @@ def _register(uv: np.ndarray, visible: np.ndarray, K: np.ndarray, R_wc: np.ndarr
     return None
 
 
-def _anchored(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, visible: np.ndarray,
-              K: np.ndarray, found: Anchors, *, iterations: int, gyro: GyroRotations | None, gyro_sigma: float,
+def _anchored(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np.ndarray, K: np.ndarray,
+              found: Anchors, *, iterations: int, gyro: GyroRotations | None, gyro_sigma: float,
               max_reproj_px: float) -> tuple[Adjusted, int]:
-    """The bundle adjustment of the clip (R_wc [n,3,3], t_wc [n,3], points [m,3], uv [m,n,2], ``visible`` [m,n])
+    """The bundle adjustment of the clip (R_wc [n,3,3], t_wc [n,3], points [m,3], uv [m,n,2], NaN where unseen)
     with the keyframes of ``found`` held, its keyframe observations that miss by more than ``max_reproj_px`` after
-    a first pass dropped before a second, shorter one (it starts at the first's optimum); returns it (the clip's
-    cameras only) and the keyframe observations kept."""
+    a first pass dropped before a second, shorter one (``bundle.bundle_adjust``'s ``held_max_px``); returns it (the
+    clip's cameras only) and the keyframe observations kept."""
     n = len(R_wc)
-    R_all, t_all = np.concatenate([R_wc, found.R_wc]), np.concatenate([t_wc, found.t_wc])
     uv_all = np.concatenate([uv, found.uv], 1)
-    adjusted = refine(R_all, t_all, points, uv_all, np.isfinite(uv_all[..., 0]), K, iterations=iterations,
-                      gyro=gyro, gyro_sigma=gyro_sigma, held=len(found.R_wc))
-    proj, _ = project(adjusted.points, R_all[n:], t_all[n:], K)
-    miss = ~(np.linalg.norm(proj - found.uv, axis=-1) <= max_reproj_px) & np.isfinite(found.uv[..., 0])
-    if miss.any():
-        uv_all[:, n:][miss] = np.nan
-        adjusted = refine(adjusted.R_wc, adjusted.t_wc, adjusted.points, uv_all, np.isfinite(uv_all[..., 0]), K,
-                          iterations=max(iterations // 4, 1), gyro=gyro, gyro_sigma=gyro_sigma, held=len(found.R_wc))
-    kept = int(np.isfinite(uv_all[:, n:, 0]).sum())
-    return adjusted._replace(R_wc=adjusted.R_wc[:n], t_wc=adjusted.t_wc[:n]), kept
+    adjusted = refine(np.concatenate([R_wc, found.R_wc]), np.concatenate([t_wc, found.t_wc]), points, uv_all,
+                      np.isfinite(uv_all[..., 0]), K, iterations=iterations, gyro=gyro, gyro_sigma=gyro_sigma,
+                      held=len(found.R_wc), held_max_px=max_reproj_px)
+    return adjusted._replace(R_wc=adjusted.R_wc[:n], t_wc=adjusted.t_wc[:n]), adjusted.held_observations
 
 
 def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = None, stationary_px: float = 0.5,
@@ -259,7 +252,7 @@ def estimate_poses(tracks: Tracks, K: np.ndarray, *, known: np.ndarray | None = 
     if bundle_adjust:
         found = anchor(points) if anchor is not None else None
         if found is not None and found.count >= min_tracks:
-            adjusted, diag["anchored"] = _anchored(R_wc, t_wc, points, uv, visible, K, found, iterations=ba_iterations,
+            adjusted, diag["anchored"] = _anchored(R_wc, t_wc, points, uv, K, found, iterations=ba_iterations,
                                                    gyro=gyro, gyro_sigma=gyro_sigma, max_reproj_px=max_reproj_px)
             diag["held_scale_sigma"] = adjusted.held_scale_sigma
         else:
