@@ -37,8 +37,8 @@ class Adjusted(NamedTuple):
     points: np.ndarray
     bias: np.ndarray | None
     traj_depth_sigma: float
-    held_scale_sigma: float = float("nan")
-    held_observations: int = 0
+    held_scale_sigma: float
+    held_observations: int
 
 
 def _residuals(R_cw, t_cw, X, uv, vis, K):
@@ -143,19 +143,21 @@ def _reduced(Hcc: torch.Tensor, Hll_inv: torch.Tensor, Hcl: torch.Tensor,
 def _information(pixel: tuple, r: torch.Tensor, vis: torch.Tensor, prior: tuple | None,
                  n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple | None] | None:
     """The Gauss-Newton information of an adjustment of n cameras (the first the gauge) at the pixel noise its
-    residuals r [m,N,2] show (Huber-weighted, dof-corrected): ``pixel``'s Hcc, Hll, Hcl (w, Hcc, Hll, Hcl of
+    residuals r [m,N,2] show (Huber-weighted, dof-corrected): ``pixel``'s Hcc, Hcl (w, Hcc, Hll, Hcl of
     ``_pixel_normal``) divided by that variance, the prior's (``_GyroPrior.normal``'s Hcc, Hcb, Hbb, or None) added,
-    with its bias blocks (Hcb, Hbb) or None; None where no degrees of freedom are left or a camera's centre is free."""
+    the points' inverse blocks Hll^-1 [m,3,3] at that variance, and the bias blocks (Hcb, Hbb) or None; None where no
+    degrees of freedom are left or a camera's centre is free."""
     w, Hcc, Hll, Hcl = pixel
     dof = 2 * int(vis.sum()) - 6 * (n - 1) - 3 * Hll.shape[0]
     if dof <= 0 or bool((Hcc.diagonal(dim1=1, dim2=2)[:, 3:] <= 0).any()):
         return None
     var_px = float((w * (r**2).sum(-1)).sum()) / dof
-    Hcc, Hll, Hcl = Hcc / var_px, Hll / var_px, Hcl / var_px
+    Hcc, Hcl = Hcc / var_px, Hcl / var_px
+    Hll_inv = _inv3(Hll / var_px + 1e-9 * torch.eye(3, dtype=Hll.dtype))
     if prior is None:
-        return Hcc, Hll, Hcl, None
+        return Hcc, Hll_inv, Hcl, None
     Hp, Hcb, Hbb = prior
-    return Hcc + Hp, Hll, Hcl, (Hcb, Hbb)
+    return Hcc + Hp, Hll_inv, Hcl, (Hcb, Hbb)
 
 
 def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Tensor, z: torch.Tensor,
@@ -177,7 +179,7 @@ def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Te
     info = _information(pixel, r, vis, prior, n) if n >= 3 else None
     if info is None:
         return float("nan")
-    Hcc, Hll, Hcl, bias = info
+    Hcc, Hll_inv, Hcl, bias = info
     # q's gradient: centres c_i = -R_i^T t_i about their mean p_i move by -R_i^T (dt_i - dw_i x t_i); depths by
     # e_z . (dw_i x P + dt_i + R_i dX_m) with P = R_i X_m.
     c = -(R_cw.transpose(1, 2) @ t_cw[..., None])[..., 0]
@@ -196,7 +198,6 @@ def _trajectory_depth_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, Xc: torch.Te
     j = int(torch.argmax(t_cw[1:].norm(dim=-1)))
     u = torch.zeros(n - 1, 6, dtype=f64)
     u[j, 3:] = t_cw[1 + j] / t_cw[1 + j].norm()
-    Hll_inv = _inv3(Hll + 1e-9 * torch.eye(3, dtype=f64))
     M, Y = _reduced(Hcc, Hll_inv, Hcl, bias)
     u = u.reshape(-1)
     M[:len(u), :len(u)] += float(M.diagonal().abs().mean()) * torch.outer(u, u)
@@ -219,7 +220,7 @@ def _held_scale_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, r: torch.Tensor, v
     info = _information(pixel, r, vis, prior, n) if n >= 2 else None
     if info is None:
         return float("nan")
-    Hcc, Hll, Hcl, bias = info
+    Hcc, Hll_inv, Hcl, bias = info
     c = -(R_cw[:n].transpose(1, 2) @ t_cw[:n, :, None])[..., 0]
     p = c - c[0]
     spread = float((p**2).sum())
@@ -227,7 +228,7 @@ def _held_scale_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, r: torch.Tensor, v
         return float("nan")
     Rp = (R_cw[1:n] @ p[1:, :, None])[..., 0]
     g = torch.cat([torch.linalg.cross(t_cw[1:n], Rp), -Rp], 1).reshape(-1) / spread
-    M, _ = _reduced(Hcc, _inv3(Hll + 1e-9 * torch.eye(3, dtype=f64)), Hcl, bias)
+    M, _ = _reduced(Hcc, Hll_inv, Hcl, bias)
     if bias is not None:
         g = torch.cat([g, torch.zeros(3, dtype=f64)])
     var = float(g @ torch.linalg.solve(M, g))
@@ -346,7 +347,8 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     R_cw, t_cw, Xc, z, r, pixel = s.R_cw, s.t_cw, s.Xc, s.z, s.r, s.pixel
     clip = slice(0, n)
     held_sigma = float("nan")
-    if held and pixel is not None:  # the clip's own blocks, the keyframes' observations left out
+    if held and pixel is not None:  # both at the final state: the scale against the keyframes with their observations,
+        # the trajectory against the depth from the clip's own (the keyframes' observations left out)
         held_sigma = _held_scale_sigma(R_cw, t_cw, r, vis, _pixel_normal(R_cw, t_cw, Xc, z, r, vis, K_t, huber_px,
                                                                           n)[:4], s.prior, n)
         pixel = _pixel_normal(R_cw[clip], t_cw[clip], Xc[:, clip], z[:, clip], r[:, clip], vis[:, clip], K_t,
