@@ -303,6 +303,33 @@ def test_held_observations_that_miss_are_dropped_before_a_second_pass():
     assert bundle_adjust(R_true[order], t_start, points, uv, visible, K, held=2).held_observations == held_seen
 
 
+def test_the_second_pass_goes_on_to_the_optimum():
+    """The clip of the test above with 0.5 px noise and the gyro's rotations (a biased estimate): the second pass
+    ends where the same problem without the missed observations ends when solved to convergence (scale within 0.1 %,
+    bias within 5e-5 rad/s). Restarted at the initial damping and a zero bias correction, it ended 0.3 % short."""
+    tracks, K, R_wc, t_wc = _turning_tracks(n=12)
+    R_true, t_true = R_wc[2].T @ R_wc, (t_wc - t_wc[2]) @ R_wc[2]
+    order = np.r_[2:12, 0, 1]
+    shared = tracks.visible[:, 2:].sum(1) >= 2
+    visible = tracks.visible[shared][:, order]
+    uv = tracks.uv[shared][:, order] + np.random.default_rng(0).normal(scale=0.5, size=visible.shape + (2,))
+    t_start = t_true[order].copy()
+    t_start[:10] *= 1.3
+    points = triangulate(uv[:, :10], visible[:, :10], R_true[order[:10]], t_start[:10], K)
+    moved = np.flatnonzero(visible[:, 10] & np.isfinite(points[:, 0]))[:30]
+    uv[moved, 10] += 15.0
+    gyro, _ = _biased_gyro(R_true[order[:10]], 0.01)
+    prior = dict(gyro=gyro, gyro_sigma=math.radians(0.05))
+    out = bundle_adjust(R_true[order], t_start, points, uv, visible, K, held=2, held_max_px=3.0, **prior)
+    without = visible.copy()
+    without[moved, 10] = False
+    best = bundle_adjust(R_true[order], t_start, points, np.where(without[..., None], uv, np.nan), without, K, held=2,
+                         iterations=400, tol=1e-13, **prior)
+    assert out.held_observations == best.held_observations
+    assert np.linalg.norm(out.t_wc[9]) / np.linalg.norm(best.t_wc[9]) == pytest.approx(1.0, abs=1e-3)
+    np.testing.assert_allclose(out.bias, best.bias, atol=5e-5)
+
+
 def test_the_held_scale_sigma_is_what_the_pixel_noise_gives():
     """The clip of the test above with frames 0 and 1 held, 40 draws of 0.5 px noise on every observation, each
     adjusted from the truth: the spread of the log of the clip's scale is the formal ``held_scale_sigma`` (ratio

@@ -5,6 +5,7 @@ noise, like a 3DFM's), so they run in seconds."""
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import replace
 
@@ -15,11 +16,13 @@ from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import gt_camera_poses, make_clip, sample_clips
 from vi3_core.eval.chained import chained_metrics
+from vi3_core.fit import ScaleLink
 from vi3_core.fit.position import fit_positions
 from vi3_core.init import InitOptions, initialise_clip
 from vi3_core.init.oracle import oracle_init
 from vi3_core.online import OnlineEstimator, OnlineOptions
-from vi3_core.online.estimator import scale_agreement
+from vi3_core.online.estimator import scale_agreement, starts_from_own
+from vi3_core.online.window import starting_scales
 from vi3_core.preintegration import preintegrate
 from vi3_core.sim.visual import PoseNoise, noisy_poses
 from vi3_core.types import AnchorResult, Geometry, ScaleFit
@@ -201,6 +204,35 @@ def test_a_clip_whose_own_scale_disagrees_with_the_window_is_named_by_the_guard(
     z, p = scale_agreement(replace(own, lam=1 / 1.15), 1 / 1.113, 0.029)
     assert abs(z) < 1 and p > 0.3
     assert scale_agreement(own, 1 / 1.2, 0.2) == (0.0, 1.0)  # the window knows no more than the clip: no test
+
+
+def test_a_clip_whose_own_scale_is_no_better_than_a_guess_is_started_from_its_neighbour():
+    """``starts_from_own``: the numbers of a generated flight's clip whose own fit came out at 1/86 of its
+    neighbours' scale at a relative sigma of 4630 (from there the window's Gauss-Newton ran off),
+    and of the real V2_03 clip above; a scale that is not positive, or has no sigma, is no start either."""
+    junk = ScaleFit(lam=0.00283, scale_rel_sigma=4630.0, v1=np.zeros(3), v1_sigma=10.0, g_sigma=0.01, sigma_v=0.003,
+                    dof=14.0, variance_factor=1.0, converged=True)
+    assert not starts_from_own(junk)
+    assert not starts_from_own(replace(junk, scale_rel_sigma=1.0))
+    assert starts_from_own(replace(junk, lam=1 / 1.55, scale_rel_sigma=0.122))
+    assert not starts_from_own(replace(junk, lam=-1 / 1.55, scale_rel_sigma=0.122))
+    assert not starts_from_own(replace(junk, lam=1 / 1.55, scale_rel_sigma=float("nan")))
+
+
+def test_members_not_sure_of_their_scale_start_from_a_linked_neighbour():
+    """``starting_scales``: a member's latest scale where it is positive, else the one before it through their link
+    (a ratio of 1 where they have none), the first ones from the first sure one after them; NaN where none is sure.
+    The first case is the rendered handheld window whose first clip, started at its own negative least-squares
+    scale, took Gauss-Newton off to inverse scales of 1e6 of both signs."""
+    link = ScaleLink(log_ratio=0.0435, sigma=0.03)
+    np.testing.assert_allclose(starting_scales(np.array([-0.59, 0.933]), [link]), [0.933 / math.exp(0.0435), 0.933])
+    nan = float("nan")
+    np.testing.assert_allclose(starting_scales(np.array([0.5, nan, -1.0, 0.7]), [link, None, link]),
+                               [0.5, 0.5 * math.exp(0.0435), 0.5 * math.exp(0.0435), 0.7])
+    np.testing.assert_allclose(starting_scales(np.array([nan, nan, 0.3]), [None, link]),
+                               [0.3 / math.exp(0.0435)] * 2 + [0.3])
+    assert np.isnan(starting_scales(np.array([nan, -0.2]), [link])).all()
+    assert starting_scales(np.array([0.4]), []) == pytest.approx([0.4])
 
 
 @pytest.mark.slow

@@ -34,6 +34,8 @@ from vi3_core.preintegration import preintegrate
 from vi3_core.threads import single_blas_thread
 from vi3_core.types import AnchorResult, Clip, Geometry, ImuSamples, InitResult, InitStatus, ScaleFit
 
+MAX_START_REL_SIGMA = 1.0  # a clip's own scale no better than this (relative 1-sigma) is no start (``starts_from_own``)
+
 
 @dataclass
 class OnlineDecision:
@@ -99,6 +101,14 @@ def scale_agreement(own: ScaleFit, lam: float, rel_sigma: float) -> tuple[float,
         return 0.0, 1.0
     z = (own.lam - lam) / math.sqrt(var)
     return z, float(math.erfc(abs(z) / math.sqrt(2.0)))
+
+
+def starts_from_own(own: ScaleFit) -> bool:
+    """Whether the window starts a clip's scale and velocity from the clip's own fit ``own``: where that scale is
+    positive and known to better than 100 % (``MAX_START_REL_SIGMA``); else from its neighbours through their scale
+    links (``window.starting_scales``). A clip of a generated flight whose own scale came out at 1/86 of its
+    neighbours' at a relative sigma of 4630 started the window's Gauss-Newton there, and the whole window ran off."""
+    return bool(own.lam > 0 and own.scale_rel_sigma < MAX_START_REL_SIGMA)
 
 
 def moves(geometry: Geometry) -> bool:
@@ -295,7 +305,7 @@ class OnlineEstimator:
                                            fit=own, diagnostics=dict(free.diagnostics)),
                                 replace(decision, rejected={"clip": why}), free)
         measured, link_note = self._link(clip, geometry, own.sigma_v)
-        sure = own.lam > 0 and np.isfinite(own.scale_rel_sigma)  # else the window starts it from its neighbour
+        sure = starts_from_own(own)
         member = Member(np.asarray(clip.stamps, np.float64), np.asarray(geometry.T_wc, np.float64),
                         sigma_v=own.sigma_v, lam=own.lam if sure else float("nan"),
                         v=np.asarray(own.v1) if sure else np.full(3, np.nan), g=np.asarray(free.g), link=measured,

@@ -13,6 +13,7 @@ clip that stays, so evidence accumulates instead of expiring with the window.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,7 @@ from vi3_core.fit import (
     ImuNoiseModel,
     MetricFit,
     PriorLayout,
+    ScaleLink,
     fit_stamps,
     marginalise,
 )
@@ -52,6 +54,24 @@ class Member:
     g: np.ndarray
     link: MeasuredLink | None = None
     traj_depth_sigma: float = 0.0
+
+
+def starting_scales(lam: np.ndarray, links: Sequence[ScaleLink | None]) -> np.ndarray:
+    """Where the window's fit starts the members' scales: lam [K] (1 / scale) where it is sure (positive: the clip's
+    own, or the window's last estimate of it), else the neighbour's through their scale link (links [K-1], link k-1
+    between members k-1 and k; None: a ratio of 1): two clips of one scene, normalised alike, are at like scales. A
+    member takes the one before it, the first ones the first sure one after them (from its own least-squares scale
+    a window's first clip started negative, and Gauss-Newton ran off to inverse scales of 1e6 of both signs). NaN where
+    no member is sure: ``MetricFit.initial_state`` then solves for them."""
+    start = np.where(np.isfinite(lam) & (lam > 0), lam, np.nan)
+    ratio = np.array([math.exp(link.log_ratio) if link is not None else 1.0 for link in links])  # lam_k / lam_k-1
+    for k in range(1, len(start)):
+        if np.isnan(start[k]):
+            start[k] = start[k - 1] * ratio[k - 1]
+    for k in range(len(start) - 2, -1, -1):
+        if np.isnan(start[k]):
+            start[k] = start[k + 1] / ratio[k]
+    return start
 
 
 def members_span(members: list[Member]) -> float:
@@ -133,13 +153,7 @@ class Window:
         R0 = [pre.R[b.first] for b in fit.blocks]
         lam = np.array([m.lam for m in members])
         known = np.isfinite(lam) & (lam > 0)
-        # a member whose own scale was not sure starts from the one before it, through their scale link where they
-        # have one (two clips of one scene, normalised alike, are at like scales)
-        start = lam.copy()
-        for k in range(1, len(members)):
-            if not known[k] and np.isfinite(start[k - 1]) and start[k - 1] > 0:
-                start[k] = start[k - 1] * (math.exp(links[k - 1].log_ratio) if links[k - 1] is not None else 1.0)
-        state = fit.initial_state(R0[0] @ members[0].g, np.where(np.isfinite(start) & (start > 0), start, np.nan))
+        state = fit.initial_state(R0[0] @ members[0].g, starting_scales(lam, links))
         state.v[known] = np.stack([R @ m.v for R, m in zip(R0, members)])[known]
         priors = (self.prior,) if self.prior is not None else ()
         result = fit.solve(state, priors=priors)
@@ -182,4 +196,4 @@ class Window:
 
 
 
-__all__ = ["Member", "Solution", "Window", "members_span"]
+__all__ = ["Member", "Solution", "Window", "members_span", "starting_scales"]

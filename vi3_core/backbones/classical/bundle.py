@@ -246,8 +246,9 @@ def _inv3(A: torch.Tensor) -> torch.Tensor:
 
 class _Solved(NamedTuple):
     """``_levenberg_marquardt``'s end: cameras R_cw [N,3,3], t_cw [N,3], points X [m,3], the gyro bias correction d
-    [3] rad/s, ``_residuals``' Xc, z, r there, and the last linearisation's blocks (``pixel``: w, Hcc, Hll, Hcl of
-    ``_pixel_normal``; ``prior``: Hcc, Hcb, Hbb of ``_GyroPrior.normal``; None: none made, or no prior)."""
+    [3] rad/s, ``_residuals``' Xc, z, r there, the last linearisation's blocks (``pixel``: w, Hcc, Hll, Hcl of
+    ``_pixel_normal``; ``prior``: Hcc, Hcb, Hbb of ``_GyroPrior.normal``; None: none made, or no prior) and the
+    damping ``lam`` reached."""
 
     R_cw: torch.Tensor
     t_cw: torch.Tensor
@@ -258,19 +259,20 @@ class _Solved(NamedTuple):
     r: torch.Tensor
     pixel: tuple | None
     prior: tuple | None
+    lam: float
 
 
 def _levenberg_marquardt(R_cw: torch.Tensor, t_cw: torch.Tensor, X: torch.Tensor, obs: torch.Tensor,
                          vis: torch.Tensor, K: torch.Tensor, n: int, prior: _GyroPrior | None, *, iterations: int,
-                         huber_px: float, tol: float) -> _Solved:
+                         huber_px: float, tol: float, d: np.ndarray | None = None, lam: float = 1e-3) -> _Solved:
     """At most ``iterations`` Levenberg-Marquardt steps of cameras 1..n-1 and the points from R_cw, t_cw, X against
     the pixels obs [m,N,2] where ``vis`` [m,N] (cameras n.. held), with the gyro ``prior`` on the clip's rotations,
-    its bias correction starting at zero; stops where a step lowers the cost by less than ``tol`` of it."""
+    its bias correction starting at ``d`` [3] rad/s (None: zero) and the damping at ``lam`` (a pass that continues
+    another starts from its end, both); stops where a step lowers the cost by less than ``tol`` of it."""
     f64 = X.dtype
     eye6, eye3 = torch.eye(6, dtype=f64), torch.eye(3, dtype=f64)
     clip = slice(0, n)
-    d = np.zeros(3)
-    lam = 1e-3
+    d = np.zeros(3) if d is None else d
     Xc, z, r = _residuals(R_cw, t_cw, X, obs, vis, K)
     cost = _cost(r, vis, huber_px) + (prior.cost(R_cw[clip], d) if prior else 0.0)
     linearise = True
@@ -309,7 +311,7 @@ def _levenberg_marquardt(R_cw: torch.Tensor, t_cw: torch.Tensor, X: torch.Tensor
                 break
         else:
             lam *= 5.0
-    return _Solved(R_cw, t_cw, X, d, Xc, z, r, pixel, prior_blocks)
+    return _Solved(R_cw, t_cw, X, d, Xc, z, r, pixel, prior_blocks, lam)
 
 
 @torch.inference_mode()
@@ -322,9 +324,10 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
     camera) a prior of ``gyro_sigma`` rad on each rotation where given and gyro_sigma > 0 (``Adjusted``). The last
     ``held`` cameras (keyframes of earlier clips) stay where they are: their observations hold the points, and with
     them the scale gauge, to the keyframes'; those that miss by more than ``held_max_px`` after a first pass are
-    dropped before a second, shorter one (``iterations // 4``, started afresh from the first's optimum), and the
-    sigmas are computed once, at the end. The trajectory's sigma against the depth is the clip's own (its first
-    n - held cameras)."""
+    dropped before a second, shorter one (``iterations // 4``) that goes on from the first's end (its state, bias
+    correction and damping: restarted at the initial damping, it was still far from its optimum when its steps ran
+    out), and the sigmas are computed once, at the end. The trajectory's sigma against the depth is the clip's own
+    (its first n - held cameras)."""
     n = len(R_wc) - held
     pid = np.flatnonzero(np.isfinite(points[:, 0]))
     f64 = torch.float64
@@ -343,7 +346,7 @@ def bundle_adjust(R_wc: np.ndarray, t_wc: np.ndarray, points: np.ndarray, uv: np
             vis = vis.clone()
             vis[:, n:] &= ~miss
             s = _levenberg_marquardt(s.R_cw, s.t_cw, s.X, obs, vis, K_t, n, prior,
-                                     **{**lm, "iterations": max(iterations // 4, 1)})
+                                     **{**lm, "iterations": max(iterations // 4, 1)}, d=s.d, lam=s.lam)
     R_cw, t_cw, Xc, z, r, pixel = s.R_cw, s.t_cw, s.Xc, s.z, s.r, s.pixel
     clip = slice(0, n)
     held_sigma = float("nan")
