@@ -235,9 +235,10 @@ class ScaleFit:
     of the scale (inf: the data do not determine it); v1 [3] m/s: first-frame body velocity in B1; v1_sigma (m/s) and
     g_sigma (rad): the largest 1-sigma of v1 (any axis) and of gravity's direction; sigma_v: the clip's own visual
     noise per axis, model units; dof: the clip's residual degrees of freedom; variance_factor: the fit's a-posteriori
-    variance factor (>= 1); converged: Gauss-Newton met its tolerance; window_clips: clips fitted jointly (1: the
-    clip on its own); time_offset, time_offset_sigma: s, the camera-IMU time offset left over after the configured one
-    (a frame at t shows the body at t + time_offset) and its 1-sigma."""
+    variance factor (>= 1); settled: the clip's scale has settled (``FitResult.settled``: the Gauss-Newton step still
+    to go moves it by at most a quarter of its linearised sigma; a scale is claimed only where it has); window_clips:
+    clips fitted jointly (1: the clip on its own); time_offset, time_offset_sigma: s, the camera-IMU time offset left
+    over after the configured one (a frame at t shows the body at t + time_offset) and its 1-sigma."""
 
     lam: float
     scale_rel_sigma: float
@@ -247,7 +248,7 @@ class ScaleFit:
     sigma_v: float
     dof: float
     variance_factor: float
-    converged: bool
+    settled: bool
     window_clips: int = 1
     time_offset: float = 0.0
     time_offset_sigma: float = float("nan")

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from vi3_core import so3
+from vi3_core.fit import metric_fit
 from vi3_core.init import InitOptions, initialise, validate
 from vi3_core.sim.imu import ImuNoise
 from vi3_core.sim.visual import InitCase, PoseNoise, make_init_case
@@ -125,6 +126,19 @@ def test_lever_arm_is_metric_and_never_scaled():
         geometry = dataclasses.replace(case.geometry, T_wc=T_wc)
         r = initialise(geometry, case.imu, case.stamps, T_BC, options=EXACT)
         assert r.ok and abs(r.scale / scale - 1) < 5e-4, (r.reason, r.scale, scale)  # integrator's O(dt^2)
+
+
+def test_a_clip_whose_fit_has_not_settled_claims_no_scale(monkeypatch):
+    """A clip claimed at its error model's sigma (26 %, the gate opened to 50 %) is unobservable where no step still to
+    go is small enough (``SETTLED_SIGMAS`` 0), its reason naming the step, and its ``ScaleFit`` says it has not
+    settled."""
+    case, gate = make_init_case(0, **NOISY), InitOptions(max_scale_sigma=0.5)
+    r = _run(case, options=gate)
+    assert r.ok and r.fit.settled, r.reason
+    monkeypatch.setattr(metric_fit, "SETTLED_SIGMAS", 0.0)
+    r = _run(case, options=gate)
+    assert r.status is InitStatus.UNOBSERVABLE and not r.fit.settled, r.reason
+    assert r.reason.startswith("scale unobservable: the fit has not settled (the Gauss-Newton step"), r.reason
 
 
 def test_fixed_point_iterates_to_convergence_not_three_steps():

@@ -11,7 +11,7 @@ import pytest
 
 from vi3_core import so3
 from vi3_core.fit import FitClip, ImuNoiseModel, MetricFit, ScaleLink, fit_stamps, marginalise
-from vi3_core.fit.layout import PriorLayout
+from vi3_core.fit.layout import PriorLayout, StateLayout
 from vi3_core.fit.metric_fit import _links_whitener
 from vi3_core.fit.prior import GaussianPrior, sqrt_of_info
 from vi3_core.init import InitOptions, initialise
@@ -126,6 +126,33 @@ def test_window_recovers_every_scale_gravity_and_the_accel_bias():
     assert np.median(np.abs(res.scale / scales - 1)) < 0.03
     assert np.degrees(so3.angle_between(res.state.g, g[0])) < 1.0
     assert np.linalg.norm(res.state.ba - np.array([0.1, -0.05, 0.08])) < 0.08
+
+
+def test_a_scale_has_settled_where_the_step_still_to_go_moves_it_by_a_quarter_sigma_at_most():
+    """A window's fit stopped early (one step a pass) from scales three times too large. The Gauss-Newton step still
+    to go from there (``FitResult.next_step``) is the step the fit takes next, and says how far each clip's scale is
+    from where the fit ends, in its sigmas (the linearised ones: the unconverged residual put the variance factor at
+    500): no clip has settled. One step a pass later every clip has, within half a sigma of the end."""
+    imu, clips, scales, bg, g, T_BC = _window_case(1, 6, REALISTIC)
+    lams = StateLayout(6).lams
+
+    def stopped(iterations: int):
+        fit, _ = _solve_window(imu, clips, bg, g[0], T_BC, sigma_v=0.003 / scales)
+        early = fit.solve(fit.initial_state(g[0], lam=1.0 / (3.0 * scales)), iterations=iterations)
+        taken, _ = fit._gauss_newton(early.state.copy(), early.sigma_v, (), 1, 1e-4, False)
+        np.testing.assert_allclose(early.state.lam - taken.lam, early.next_step[lams], rtol=1e-6)
+        done = fit.solve(early.state)
+        assert not early.converged and done.converged
+        assert all(done.settled(k) and done.step_sigmas(k) < 0.01 for k in range(6))
+        sigma = np.sqrt(np.diag(early.cov)[lams] / early.variance_factor)
+        return early, np.abs(early.state.lam - done.state.lam) / sigma
+
+    early, to_go = stopped(1)
+    step = np.array([early.step_sigmas(k) for k in range(6)])
+    assert early.variance_factor > 10 and not any(early.settled(k) for k in range(6)), (early.variance_factor, step)
+    assert np.all((step > 0.5 * to_go) & (step < 2 * to_go)), (step, to_go)
+    later, to_go = stopped(2)
+    assert all(later.settled(k) for k in range(6)) and to_go.max() < 0.5, to_go
 
 
 def test_window_makes_weak_clips_observable_that_are_not_on_their_own():

@@ -198,7 +198,7 @@ def test_a_clip_whose_own_scale_disagrees_with_the_window_is_named_by_the_guard(
     """``scale_agreement``: the clip's own 1 / scale against the window's (which holds the clip's evidence and more),
     on the numbers of the real V2_03 clip that carried its window (own 1.55 +- 12 %, window 1.11 +- 2.9 %)."""
     own = ScaleFit(lam=1 / 1.55, scale_rel_sigma=0.122, v1=np.zeros(3), v1_sigma=0.1, g_sigma=0.01, sigma_v=0.003,
-                   dof=14.0, variance_factor=1.0, converged=True)
+                   dof=14.0, variance_factor=1.0, settled=True)
     z, p = scale_agreement(own, 1 / 1.113, 0.029)
     assert z < -3 and p < 1e-3
     z, p = scale_agreement(replace(own, lam=1 / 1.15), 1 / 1.113, 0.029)
@@ -211,7 +211,7 @@ def test_a_clip_whose_own_scale_is_no_better_than_a_guess_is_started_from_its_ne
     neighbours' scale at a relative sigma of 4630 (from there the window's Gauss-Newton ran off),
     and of the real V2_03 clip above; a scale that is not positive, or has no sigma, is no start either."""
     junk = ScaleFit(lam=0.00283, scale_rel_sigma=4630.0, v1=np.zeros(3), v1_sigma=10.0, g_sigma=0.01, sigma_v=0.003,
-                    dof=14.0, variance_factor=1.0, converged=True)
+                    dof=14.0, variance_factor=1.0, settled=True)
     assert not starts_from_own(junk)
     assert not starts_from_own(replace(junk, scale_rel_sigma=1.0))
     assert starts_from_own(replace(junk, lam=1 / 1.55, scale_rel_sigma=0.122))

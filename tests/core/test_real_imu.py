@@ -13,6 +13,7 @@ from vi3_core import so3
 from vi3_core.backbones.ground_truth import GroundTruthPoses
 from vi3_core.dataset.sequence import make_clip
 from vi3_core.eval.runner import EvalOptions, clip_indices, evaluate_clip
+from vi3_core.fit import metric_fit
 from vi3_core.fit.noise import ImuNoiseModel
 from vi3_core.init import InitOptions, initialise_clip
 from vi3_core.online import StreamEstimator
@@ -148,6 +149,37 @@ def test_aggressive_flight_claims_no_confident_wrong_scale(v203):
     assert len(claims) >= 25, claims
     assert all(abs(e) < 0.1 and abs(e) < 3.5 * s for _, e, s in claims), [c for c in claims if abs(c[1]) > 3 * c[2]]
     assert any(abs(t - 35.0) < 0.1 for t in refused), refused
+
+
+def _takeoff_claims(v203) -> list[tuple[float, float, float, str]]:
+    """(s into the flight, error, relative sigma, reason) of V2_03's first 17 clips through the window (3 mm / 0.1
+    deg, noise seed 0); the error and sigma NaN where a clip is not claimed."""
+    t0 = float(v203.stamps[0])
+    return [(float(clip.stamps[0] - t0), init.scale / truth - 1.0 if init.ok else np.nan,
+             init.scale_sigma / init.scale if init.ok else np.nan, init.reason)
+            for clip, _, truth, init in _chained(v203, PoseNoise(pos_m=0.003, rot_deg=0.1), seed=0, max_clips=17)]
+
+
+def test_a_member_the_window_cannot_fix_does_not_hold_up_the_newest_clips_claim(v203):
+    """On the real V2_03 flight's take-off the window holds clips from before it whose scale it cannot fix: one's lam
+    swings from step to step (from 19 to 430, through zero), so the fit never meets its tolerance, which is relative
+    to each lam. The newest clip's scale moves by a few hundredths of its sigma there: it has settled
+    (``FitResult.settled``) and is claimed, right."""
+    claims = [(t, e, s) for t, e, s, _ in _takeoff_claims(v203) if np.isfinite(e)]
+    assert len(claims) >= 4 and claims[0][0] < 8.0, claims
+    assert all(abs(e) < 0.1 and abs(e) < 3 * s for _, e, s in claims), claims
+
+
+def test_a_clip_whose_fit_has_not_settled_is_not_claimed_and_says_why(v203, monkeypatch):
+    """The same take-off where no step still to go is small enough (``SETTLED_SIGMAS`` 0): no clip is claimed, and
+    each one claimed above names the window's step."""
+    claimed = [t for t, e, _, _ in _takeoff_claims(v203) if np.isfinite(e)]
+    monkeypatch.setattr(metric_fit, "SETTLED_SIGMAS", 0.0)
+    refused = _takeoff_claims(v203)
+    assert not any(np.isfinite(e) for _, e, _, _ in refused)
+    why = {t: reason for t, _, _, reason in refused}
+    assert claimed and all("has not settled" in why[t] and "step still to go" in why[t] for t in claimed), \
+        [why[t] for t in claimed]
 
 
 @pytest.mark.parametrize("name", ["v102", "v203"])

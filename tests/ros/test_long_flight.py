@@ -105,7 +105,7 @@ def test_an_hour_of_chained_and_propagated_odometry_stays_rotations():
         target = ImuTrajectory(R=R_B1W @ T_WB[:, :3, :3], p=(T_WB[:, :3, 3] - T_WB[0, :3, 3]) @ R_B1W.T, v=v_B1,
                                T_wc=geometry.T_wc)
         fit = ScaleFit(lam=1 / SCALE, scale_rel_sigma=0.02, v1=v_B1[0], v1_sigma=0.02, g_sigma=0.005, sigma_v=0.001,
-                       dof=20.0, variance_factor=1.0, converged=True)
+                       dof=20.0, variance_factor=1.0, settled=True)
         init = InitResult(InitStatus.OK, "ok", bg=np.zeros(3), g=R_B1W @ G_W, scale=SCALE, scale_sigma=0.02 * SCALE,
                           v1=v_B1[0], target=target, fit=fit)
         result = AnchorResult(geometry.scaled(SCALE), geometry, init, "init", SCALE, target=target)

@@ -103,7 +103,9 @@ class FitResult:
     do not determine it); sigma_v [K]: visual noise per axis, model units; chi2 [K], dof [K]: each clip's whitened
     visual residual and its degrees of freedom; variance_factor: chi2 / dof over all rows (inflates cov when > 1);
     cov: covariance of the parameters (``StateLayout(K)``'s columns); tangent [3,2]: the basis of
-    g's tangent plane that cov refers to; converged: Gauss-Newton met its tolerance; link_chi2, link_dof [K-1]: the
+    g's tangent plane that cov refers to; converged: Gauss-Newton met its tolerance; next_step: the full Gauss-Newton
+    step still to go from ``state`` (cov's columns, subtracted; of the objective the state was fitted to, where cov is
+    at the model's IMU level; ``settled``); link_chi2, link_dof [K-1]: the
     velocity ties' whitened residual and degrees of freedom (tie k-1 joins clips k-1 and k); scale_chi2, scale_dof
     [K-1]: the same of the scale links (NaN where clips k-1 and k have none); level_score [2], level_info [2,2]:
     with ``estimate_levels``, the restricted likelihood's score and information in the logarithms of the IMU's and the
@@ -120,6 +122,7 @@ class FitResult:
     cov: np.ndarray
     tangent: np.ndarray
     converged: bool
+    next_step: np.ndarray = field(default_factory=lambda: np.zeros(0))
     link_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))
     link_dof: np.ndarray = field(default_factory=lambda: np.zeros(0))
     scale_chi2: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -130,6 +133,25 @@ class FitResult:
     @property
     def layout(self) -> StateLayout:
         return StateLayout(len(self.scale))
+
+    def step_sigmas(self, k: int) -> float:
+        """How far the fit still is from its solution in clip k's scale: the change that ``next_step`` makes to lam_k,
+        in lam_k's linearised 1-sigma (before the variance factor, which the residual an unconverged fit still holds
+        would inflate; inf where the step or the sigma is not known)."""
+        if len(self.next_step) != self.layout.n:
+            return math.inf
+        col = self.layout.lam(k)
+        var = float(self.cov[col, col]) / self.variance_factor
+        return abs(float(self.next_step[col])) / math.sqrt(var) if var > 0 else math.inf
+
+    def settled(self, k: int) -> bool:
+        """Whether the scale a claim of clip k publishes has settled: the Gauss-Newton step still to go moves it by at
+        most ``SETTLED_SIGMAS`` of its sigma (``step_sigmas``). The fit's own tolerance is relative to each lam, so a
+        member whose scale the window cannot fix (a clip at rest at the start of a flight) swings from step to step
+        and keeps the whole fit from meeting it, while the newest clip's scale moves by less than 1e-4 of itself.
+        Gravity and the velocity, which a claim publishes with their own sigmas, are not held to it: on V1_02's
+        take-off the step still to go moved gravity by up to 0.6 of its sigma where it moved the scale by 0.04."""
+        return self.step_sigmas(k) <= SETTLED_SIGMAS
 
     def marginal(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(mean z, covariance) of the prior vector z (``PriorLayout``) at clip k: g, ba, bg, v_k in B0 (g's
@@ -462,7 +484,9 @@ class MetricFit:
             # estimated levels; their covariance, and what ``marginalise`` keeps of them, at no less than the model's.
             if self.imu_level < 1.0:
                 self.fitted_imu_level, self.imu_level = self.imu_level, 1.0
-                result = self._result(s, self._decomposed(s, sigma_v, priors), sigma_v, converged)
+                # the step still to go is the objective's the state was fitted to
+                result = self._result(s, self._decomposed(s, sigma_v, priors), sigma_v, converged,
+                                      next_step=result.next_step)
             result.level_score, result.level_info = score, info
         return result
 
@@ -594,10 +618,14 @@ class MetricFit:
                 break
         return math.sqrt(theta)
 
-    def _result(self, s: FitState, lin: _Linear, sigma_v: np.ndarray, converged: bool) -> FitResult:
-        """The solution at ``s`` from ``lin`` (``_decomposed`` there)."""
+    def _result(self, s: FitState, lin: _Linear, sigma_v: np.ndarray, converged: bool,
+                next_step: np.ndarray | None = None) -> FitResult:
+        """The solution at ``s`` from ``lin`` (``_decomposed`` there); ``next_step``: ``FitResult.next_step`` where it
+        is not ``lin``'s Gauss-Newton step."""
         y, rows, B, U, sv, Vt = lin.y, lin.rows, lin.B, lin.U, lin.sv, lin.Vt
         keep = sv > 1e-10 * sv[0]
+        if next_step is None:
+            next_step = (Vt[keep].T / sv[keep]) @ (U[:, keep].T @ y) / lin.norm
         cov = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep] / np.outer(lin.norm, lin.norm)
         undetermined = (np.abs(Vt[~keep]) > 1e-6).any(0) if (~keep).any() else np.zeros(self.layout.n, bool)
         leverage = (U[:, keep] ** 2).sum(1)
@@ -621,8 +649,8 @@ class MetricFit:
         scale[lam > 0] = 1.0 / lam[lam > 0]
         return FitResult(state=s, scale=scale, scale_rel_sigma=rel, sigma_v=sigma_v.copy(), chi2=np.array(chi2),
                          dof=np.array(dof), variance_factor=vf, cov=cov * vf, tangent=B, converged=converged,
-                         link_chi2=np.array(link_chi2), link_dof=np.array(link_dof), scale_chi2=scale_chi2,
-                         scale_dof=scale_dof)
+                         next_step=next_step, link_chi2=np.array(link_chi2), link_dof=np.array(link_dof),
+                         scale_chi2=scale_chi2, scale_dof=scale_dof)
 
 
 def _links_whitener(scale_links: list[tuple[int, float, float]], traj_depth_sigma: Sequence[float]) -> np.ndarray:
@@ -700,6 +728,7 @@ class _Links:
 
 _EYE3 = np.eye(3)
 LEVELS = ("imu_level", "visual_level")  # the noise levels' variance components (``MetricFit.solve``)
+SETTLED_SIGMAS = 0.25  # a scale has settled where the step still to go moves it by at most this many of its 1-sigma
 ATTITUDE_ANCHOR = 1e-6  # rad: the window's first frame is B0 itself (its attitude error is zero)
 _HAT_E = so3.hat(np.eye(3))  # [3,3,3]: hat of each axis
 

@@ -197,7 +197,7 @@ def _error_model_scale(inertial: _Inertial, geometry: Geometry, T_BC: np.ndarray
     g_sigma, v1_sigma = res.state_sigma(0)
     own = ScaleFit(lam=float(st.lam[0]), scale_rel_sigma=float(res.scale_rel_sigma[0]), v1=st.v[0],
                    v1_sigma=v1_sigma, g_sigma=g_sigma, sigma_v=float(res.sigma_v[0]), dof=float(res.dof[0]),
-                   variance_factor=res.variance_factor, converged=res.converged, time_offset=st.td,
+                   variance_factor=res.variance_factor, settled=res.settled(0), time_offset=st.td,
                    time_offset_sigma=res.time_offset_sigma)
     result = inertial.result()
     result.g, result.bg, result.ba, result.fit = st.g, st.bg, st.ba, own
@@ -209,6 +209,9 @@ def _error_model_scale(inertial: _Inertial, geometry: Geometry, T_BC: np.ndarray
     elif why is None and not rel <= options.max_scale_sigma:
         why = (f"scale unobservable: relative sigma {rel:.3g} > max_scale_sigma {options.max_scale_sigma} (visual "
                f"noise {1e3 * own.sigma_v_m:.1f} mm per axis, body acceleration RMS {inertial.accel_rms:.2f} m/s^2)")
+    elif why is None and not own.settled:
+        why = (f"scale unobservable: the fit has not settled (the Gauss-Newton step still to go moves the scale by "
+               f"{res.step_sigmas(0):.2g} sigma)")
     if why:
         result.status, result.reason = InitStatus.UNOBSERVABLE, why
         return result

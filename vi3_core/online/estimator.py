@@ -366,7 +366,7 @@ class OnlineEstimator:
         g_sigma, v_sigma = res.state_sigma(k)
         fit = ScaleFit(lam=float(res.state.lam[k]), scale_rel_sigma=rel, v1=v_k, v1_sigma=v_sigma, g_sigma=g_sigma,
                        sigma_v=own.sigma_v, dof=float(res.dof[k]), variance_factor=res.variance_factor,
-                       converged=res.converged, window_clips=k + 1, time_offset=res.state.td,
+                       settled=res.settled(k), window_clips=k + 1, time_offset=res.state.td,
                        time_offset_sigma=res.time_offset_sigma)
         diag = dict(free.diagnostics)
         st = res.state
@@ -375,13 +375,17 @@ class OnlineEstimator:
         # went off to lam -> 0, v -> 1e6 m/s, where the linearisation gave that absurd scale a 3 % sigma (before
         # ``MetricFit._decomposed`` scaled its columns, which also let a clip's own initialisation claim one).
         passes = s > 0.0 and rel <= io.max_scale_sigma
-        if not passes or not (k or free.ok):
+        if not passes or not fit.settled or not (k or free.ok):
             tds = geometry.traj_depth_sigma
-            why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > max_scale_sigma "
-                   f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s"
-                   + (f"; {_traj_depth_text(tds)}" if tds > 0 else "") + ")"
-                   if not passes else
-                   f"a window of one clip claims only what the clip's own initialisation does ({free.reason})")
+            if not passes:
+                why = (f"scale unobservable over the online window (relative sigma {rel:.3g} > max_scale_sigma "
+                       f"{io.max_scale_sigma}; {k + 1} clips over {span:.1f} s"
+                       + (f"; {_traj_depth_text(tds)}" if tds > 0 else "") + ")")
+            elif not fit.settled:
+                why = (f"the online window's fit has not settled: the Gauss-Newton step still to go moves the clip's "
+                       f"scale by {res.step_sigmas(k):.2g} sigma ({k + 1} clips over {span:.1f} s)")
+            else:
+                why = f"a window of one clip claims only what the clip's own initialisation does ({free.reason})"
             return self._decide(InitResult(InitStatus.UNOBSERVABLE, why, bg=st.bg, g=g_k, ba=st.ba, fit=fit,
                                            diagnostics=diag), decision, free)
         target = preintegrate(clip.imu, clip.stamps, st.bg, st.ba).propagate(g_k, v_k, clip.T_BC)
