@@ -2,7 +2,8 @@
 over uXRCE-DDS (``px4_odom``) and ``nav_msgs/Odometry`` for MAVROS's odometry plugin (``mavros_odom``), which sends it
 to PX4 or ArduPilot as MAVLink ODOMETRY. How to set up the flight stack: docs/node.md, "Feeding PX4 / ArduPilot".
 
-What is sent when. Nothing before the first chained clip (the first claimed scale). With ``flight_odom_source`` imu
+What is sent when. Nothing before the first chained clip (the first claimed scale, or the first window scale within
+``odom_max_scale_sigma``: ``chain.OdomChain.odometry_only``). With ``flight_odom_source`` imu
 (the default) one sample per ``~/odom/imu`` message: the same propagated state, at up to ``imu_odom_rate``, stopping
 and resuming with it (``imu_odom_max_sigma``); with ``clip`` one per ``~/odom`` (the chained clip's last frame).
 
@@ -25,7 +26,8 @@ new segment, and EKF2 resets to the next sample instead of seeing a jump. MAVROS
 (it sends MAVLink's as 0), so the MAVROS stream pauses ``MAVROS_RESET_PAUSE_S`` of measurement time at a new segment,
 longer than PX4's external-vision timeout (0.4 s), after which PX4 resets its position to the next sample.
 
-``quality`` (PX4's EKF2_EV_QMIN compares it): ``scale_quality`` of the chained clip's relative scale sigma.
+``quality`` (PX4's EKF2_EV_QMIN compares it): ``scale_quality`` of the chained clip's relative scale sigma (1 for a
+clip chained without a claim, its sigma being above ``max_scale_sigma``).
 """
 
 from __future__ import annotations

@@ -161,6 +161,10 @@ PARAMS: tuple[Param, ...] = (
             "(clips a busy worker dropped); longer, or IMU missing: the window restarts", range=(0.1, 3600.0)),
     Param("online_max_bridge_sigma", OnlineOptions, "m; a clip placed through a bridge whose "
             "position 1-sigma exceeds this starts a new odom segment", range=(0.001, 1000.0)),
+    Param("odom_max_scale_sigma", OnlineOptions, "a clip the claim gate refuses goes into ~/odom all the same at the "
+          "window's scale where that settled within this relative 1-sigma (counted in ~/odom's covariance; its scale, "
+          "depth and points are still not published); at or below max_scale_sigma: claimed clips only",
+          range=(0.0, 10.0)),
     Param("online_consistency_p", OnlineOptions, "a clip whose residual in the window (chi-square), or whose own "
           "scale against the window's, has a tail probability below this is inconsistent (rejected)",
           range=(1e-12, 0.5)),

@@ -282,7 +282,7 @@ class Pipeline:
             if self.imu_odom is not None:
                 self.imu_odom.restart(outcome.state, self._imu_since, raw.epoch, anchor)
         self._publish_status(raw, clip, outcome.init, outcome.mode, latency, result=outcome.result,
-                             decision=outcome.decision)
+                             decision=outcome.decision, chained=chained is not None)
 
     def _backbone_delay(self) -> bool:
         """``backbone_delay`` s before the backbone; False when ``close`` ended it (the clip is abandoned)."""
@@ -315,17 +315,18 @@ class Pipeline:
         return text
 
     def _publish_status(self, raw: RawClip, clip: Clip, init: InitResult, kind: str, latency: float, *,
-                        result: AnchorResult | None, decision: OnlineDecision | None) -> None:
+                        result: AnchorResult | None, decision: OnlineDecision | None,
+                        chained: bool | None = None) -> None:
         """~/status (and, for final results, /diagnostics) of one result of ``raw`` processed as ``clip``; ``result``
         None when anchoring did not run (data rejected before the backbone); ``decision``: the online window's (None
-        without online)."""
+        without online); ``chained``: whether the clip was placed in odom (None: not known yet)."""
         errors = self.outputs.take_errors()
         with self._lock:
             self.output_errors.update(key for key, _ in errors)
         status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
                              trajectory=self.stream.trajectory, rig=self._rig, rig_note=self._rig_note,
-                             output_errors=errors, front_end=self._front_end(result))
+                             output_errors=errors, front_end=self._front_end(result), chained=chained)
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),
                    status, final=kind != "init" or self.settings.stream.mode == "init")
 

@@ -264,6 +264,28 @@ def test_a_window_of_one_clip_claims_only_what_the_clip_itself_would(seq):
     assert n >= len(online) // 2 and np.all(err <= 3 * rel), (n, len(online))
 
 
+def test_only_a_settled_window_scale_within_odom_max_scale_sigma_goes_into_odom_unclaimed(seq):
+    """A clip the claim gate (0.1 %) refuses is chained at the window's scale only where the window fitted it with other
+    clips and settled on a positive scale within odom_max_scale_sigma: its poses are the backbone's times that scale.
+    The same result is not placed when its fit had not settled, was the clip's alone, or is above the sigma."""
+    est, online, _, _ = _run(seq, init_options=InitOptions(max_scale_sigma=0.001))
+    assert not any(r.ok for r in online)
+    chain, placed = est.chain, [r for r in online if est.chain.odometry_only(r)]
+    assert len(placed) >= len(online) // 2 and len(chain.trajectory.stamps) > 0
+    r = placed[-1]
+    assert not chain.odometry_only(replace(r, fit=replace(r.fit, settled=False)))
+    assert not chain.odometry_only(replace(r, fit=replace(r.fit, window_clips=1)))
+    assert not chain.odometry_only(replace(r, fit=replace(r.fit, scale_rel_sigma=0.11)))
+    assert not chain.odometry_only(replace(r, fit=replace(r.fit, lam=-r.fit.lam)))
+    # the chained positions are metric: the last placed clip's displacement against the truth
+    k = max(i for i, x in enumerate(online) if chain.odometry_only(x))
+    clip = make_clip(seq, sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[k], with_depth=False)
+    T = chain.state.T_OB
+    moved, true = np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3]), np.linalg.norm(clip.gt.T_WB[-1, :3, 3] -
+                                                                             clip.gt.T_WB[0, :3, 3])
+    assert moved == pytest.approx(true, rel=3 * r.fit.scale_rel_sigma + 0.01)
+
+
 def test_an_imu_bridge_is_trusted_only_as_far_as_the_accelerometer_bias_walks(seq):
     """Both ends' velocities cancel a constant accelerometer bias from a bridge, not a walking one: its error, the
     integral of b(s) (T / 2 - s) over the bridge, has the variance q^2 T^5 / 120 for a walk of rate q (4000 simulated
@@ -281,5 +303,5 @@ def test_an_imu_bridge_is_trusted_only_as_far_as_the_accelerometer_bias_walks(se
     sigmas = []
     for walk in (0.0, 0.5):
         chain.init_options = replace(est.init_options, accel_bias_walk=walk)
-        sigmas.append(chain.placement(t1, init, est._imu).sigma)
+        sigmas.append(chain.placement(t1, init, init.v1, est._imu).sigma)
     assert sigmas[1] ** 2 - sigmas[0] ** 2 == pytest.approx(0.25 * span**5 / 120.0, rel=1e-6)

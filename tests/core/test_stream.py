@@ -17,7 +17,9 @@ from vi3_core.backbones.ground_truth import GroundTruthPoses
 from vi3_core.dataset.asl import read_asl
 from vi3_core.dataset.generate import cached_sequence
 from vi3_core.dataset.sequence import make_clip, sample_clips
+from vi3_core.eval.chained import chained_metrics
 from vi3_core.eval.coverage import motion_start
+from vi3_core.init import InitOptions
 from vi3_core.online import OnlineOptions, StreamEstimator, StreamOptions
 from vi3_core.online.calibration import CalibrationOptions
 from vi3_core.sim.visual import DepthNoise, PoseNoise
@@ -33,11 +35,12 @@ def takeoff(euroc_v102, cache_dir):
     return read_asl(cached_sequence(cache_dir, seconds=14.0, seed=0, from_euroc=recording, start_s=2.0) / "mav0")
 
 
-def _run(seq, online: OnlineOptions, *, clips=None, seed: int = 0, calibration: CalibrationOptions | None = None):
+def _run(seq, online: OnlineOptions, *, clips=None, seed: int = 0, calibration: CalibrationOptions | None = None,
+         init: InitOptions | None = None):
     """The stream's outcomes over ``clips`` (default: every clip, each sharing its first frame with the one before)
     and the instrument's true metres per model unit of each."""
     instrument = GroundTruthPoses(noise=PoseNoise(0.003, 0.1), depth_noise=DepthNoise(0.05, 0.02), seed=seed)
-    stream = StreamEstimator(instrument, online=online, calibration=calibration)
+    stream = StreamEstimator(instrument, online=online, calibration=calibration, init=init)
     clips = clips if clips is not None else sample_clips(len(seq), mode="sliding", hop=14)
     out = []
     for idx in clips:
@@ -70,6 +73,36 @@ def test_links_make_a_gentle_takeoff_metric_within_seconds_and_every_claim_hones
     assert all(e < 0.1 and e < 3 * s for e, s in zip(errors, sigmas)), list(zip(errors, sigmas))
     described = [o.decision.describe() for o, _ in linked if o.decision.link is not None]
     assert all("scale: linked (depth of 1 frame(s) shared with the clip at" in d for d in described)
+
+
+def test_the_odometry_goes_on_where_a_scale_is_known_too_loosely_to_claim(takeoff):
+    """The claim gate at 0.1 % claims no clip. The clips whose window scale settled within odom_max_scale_sigma (10 %)
+    are placed in odom all the same, unclaimed (no metric geometry), and that odometry follows the flight to a few
+    per cent of its path, as the claimed clips' of the shipped gate do; with odom_max_scale_sigma 0 nothing is
+    placed."""
+    start = motion_start(takeoff.gt.t, takeoff.gt.v_WB, float(takeoff.stamps[0]))
+    tight = InitOptions(max_scale_sigma=0.001)
+    loose = _run(takeoff, OnlineOptions(), init=tight)
+    assert not any(o.init.ok for o, _ in loose)
+    placed = [o for o, _ in loose if o.chained is not None]
+    assert all(o.mode == "none" and o.init.fit.scale_rel_sigma <= 0.1 for o in placed)
+    in_flight = [o for o, _ in loose if o.clip.stamps[0] >= start + 3.0]
+    assert sum(o.chained is not None for o in in_flight) >= 0.8 * len(in_flight)
+
+    def drift(outcomes) -> float:
+        poses = {}  # the first clip to place a frame places it, as in the odom trajectory
+        for o, _ in outcomes:
+            if o.chained is not None:
+                for t, T_OB, T_WB in zip(o.chained.stamps, o.chained.T_OB, o.clip.gt.T_WB):
+                    poses.setdefault(float(t), (T_OB, T_WB))
+        stamps = np.array(sorted(poses))
+        return chained_metrics(np.stack([poses[t][0] for t in stamps]), np.stack([poses[t][1] for t in stamps]),
+                               stamps=stamps).drift_pct
+
+    claimed = _run(takeoff, OnlineOptions(odom_max_scale_sigma=0.0))  # the claimed clips only, at the shipped gate
+    assert drift(loose) < 3.0 and drift(loose) < drift(claimed) + 1.0, (drift(loose), drift(claimed))
+    off = _run(takeoff, OnlineOptions(odom_max_scale_sigma=0.0), init=tight)
+    assert all(o.chained is None for o, _ in off)
 
 
 def test_a_clip_after_dropped_ones_gets_the_shared_frame_in_place_of_its_first(takeoff):

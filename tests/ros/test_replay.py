@@ -179,6 +179,11 @@ def test_end_to_end_output_readable_by_rosbags_and_mcap(e2e):
         assert pc.height == 1 and pc.width == len(cloud) > 100 and pc.row_step == 16 * pc.width
         assert np.isfinite(cloud["z"]).all()
     assert all(float(s.values["scale"]) > 0 for s in statuses if s.values["result"] == "init")
+    # one ~/odom per clip placed in odom: every claimed clip, and those at the window's scale the status names
+    placed = [(s.values["result"], s.values["odom"]) for s in statuses]
+    assert all(odom == "claimed" for result, odom in placed if result == "init"), placed
+    assert all(odom in ("window scale, not claimed", "not placed") for result, odom in placed if result != "init")
+    assert len(msgs["/vi3_node/odom"]) == sum(odom != "not placed" for _, odom in placed)
     assert "/diagnostics" in msgs
     # the same file through mcap + mcap-ros2-support
     with out.open("rb") as f:

@@ -1,7 +1,8 @@
 """The continuous ``odom`` trajectory (REP-105: continuous, gravity-aligned, z up) that clips are chained into, and
-``OdomChain``, which places each claimed clip in it.
+``OdomChain``, which places each claimed clip in it, and each clip whose scale the online window knows well enough
+for odometry (``OdomChain.odometry_only``) though not for a claim.
 
-``T_OB`` are body (IMU frame) poses in odom; gravity in odom is [0, 0, -|g|] by construction. Every claimed clip is
+``T_OB`` are body (IMU frame) poses in odom; gravity in odom is [0, 0, -|g|] by construction. Every chained clip is
 placed through the IMU from the last chained frame with both ends' velocities (the last pose without IMU;
 ``OdomChain.placement``), levelled with its gravity, yaw kept; a placement whose bridge has no IMU or a position
 1-sigma above ``online_max_bridge_sigma`` starts a new segment of the trajectory (``Trajectory.resets``). The chain
@@ -20,7 +21,7 @@ from vi3_core import so3
 from vi3_core.init import InitOptions, validate
 from vi3_core.online.options import OnlineOptions
 from vi3_core.preintegration import preintegrate
-from vi3_core.types import AnchorResult, Clip, ImuSamples, InitResult
+from vi3_core.types import AnchorResult, Clip, ImuSamples, InitResult, InitStatus
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -133,8 +134,9 @@ def imu_gap(imu: ImuSamples | None, t0: float, t1: float, options: InitOptions) 
 
 
 class OdomChain:
-    """The claimed clips of a stream placed one after the other in odom: ``state`` (the last chained clip, where the
-    next bridge and the IMU-rate propagation start; None before the first) and ``trajectory``.
+    """The claimed clips of a stream, and those ``odometry_only`` places, one after the other in odom: ``state`` (the
+    last chained clip, where the next bridge and the IMU-rate propagation start; None before the first) and
+    ``trajectory``.
 
     ``add(clip, result, imu)`` places an anchored clip (``imu``: the stream's kept IMU, covering the bridge from the
     last chained clip). Deterministic; not thread-safe."""
@@ -151,10 +153,22 @@ class OdomChain:
         self.trajectory = Trajectory(resets=previous.resets)
         self._new_segment = bool(len(previous.stamps) or previous.resets)
 
-    def placement(self, t1: float, init: InitResult, imu: ImuSamples | None) -> Placement:
+    def odometry_only(self, init: InitResult) -> bool:
+        """Whether a clip whose scale is not claimed goes into odom all the same: the online window fitted it with
+        others (one clip alone is the clip's own initialisation), settled on a positive scale whose relative 1-sigma is
+        at most ``odom_max_scale_sigma``. Its metres flown then count that sigma in the odom's uncertainty
+        (``Trajectory.error_m``), as a claimed clip's count its own, where the IMU bridge over it would add the bias's
+        walk growing with T^2.5 (``placement``); its scale is still not published (no depth, points or poses)."""
+        fit = init.fit
+        return (init.status is InitStatus.UNOBSERVABLE and fit is not None and fit.window_clips > 1 and fit.settled
+                and fit.lam > 0 and fit.scale_rel_sigma <= self.options.odom_max_scale_sigma
+                and bool(np.all(np.isfinite(init.g))))
+
+    def placement(self, t1: float, init: InitResult, v1: np.ndarray, imu: ImuSamples | None) -> Placement:
         """Where the clip starting at t1 goes: the odom state at its frame nearest before t1 carried to t1 through the
-        IMU, with both ends' velocities (the state's, and the clip's own first-frame velocity ``init.v1``); without
-        IMU over the gap (or state), the last pose (or the origin), starting a new segment.
+        IMU, with both ends' velocities (the state's, and the clip's own first-frame velocity ``v1`` [3], m/s in its
+        first body frame); without IMU over the gap (or state), the last pose (or the origin), starting a new
+        segment.
 
         Two ends: with v_a (state) and v_b (clip) in the body frame at t_k, v_b = v_a + g T + beta(T) gives
         p(T) = (v_a + v_b) T / 2 + alpha(T) - beta(T) T / 2: gravity drops out, and a constant accelerometer-bias
@@ -181,7 +195,7 @@ class OdomChain:
             return Placement(st.T_OB[-1, :3, :3], st.T_OB[-1, :3, 3], f"no bridge over {T:.2f} s: {why}")
         stamps = np.array([st.stamps[k], t1])
         pre = preintegrate(imu.window(stamps[0], stamps[1]), stamps, init.bg, init.ba)
-        v_a, v_b = R_k.T @ st.v_O[k], pre.R[1] @ init.v1
+        v_a, v_b = R_k.T @ st.v_O[k], pre.R[1] @ v1
         d = 0.5 * (v_a + v_b) * T + pre.alpha[1] - 0.5 * pre.beta[1] * T
         v1_sigma = init.fit.v1_sigma if init.fit is not None else 0.0
         noise = self.init_options.noise_model
@@ -194,15 +208,22 @@ class OdomChain:
 
     def add(self, clip: Clip, result: AnchorResult, imu: ImuSamples | None) -> ChainedClip | None:
         """Place the anchored clip in odom (levelled with its gravity, yaw kept) and make it the state for the next
-        clip's bridge (through ``imu``). A clip that is not ok is not placed (None)."""
-        init = result.init
+        clip's bridge (through ``imu``). A clip that is neither ok nor ``odometry_only`` is not placed (None); one that
+        is ``odometry_only`` is placed at the window's scale, its velocities the IMU's from the window's state."""
+        init, fit, T_BC = result.init, result.init.fit, clip.T_BC
         target = result.target or init.target
-        if not init.ok or target is None or result.mode == "none":
+        if init.ok and target is not None and result.mode != "none":
+            T_wc, v1 = result.geometry.T_wc, init.v1
+        elif self.odometry_only(init):
+            T_wc = result.base.T_wc.copy()
+            T_wc[:, :3, 3] /= fit.lam
+            v1 = fit.v1
+            target = preintegrate(clip.imu, clip.stamps, init.bg, init.ba).propagate(init.g, v1, T_BC)
+        else:
             return None
-        place = self.placement(float(clip.stamps[0]), init, imu)
+        place = self.placement(float(clip.stamps[0]), init, v1, imu)
         R_OB1 = gravity_align(place.R_OB1, init.g)
-        T_BC = clip.T_BC
-        T_B1B = T_BC @ result.geometry.T_wc @ so3.inv_T(T_BC)  # metric body poses in B1
+        T_B1B = T_BC @ T_wc @ so3.inv_T(T_BC)  # metric body poses in B1
         T_OB = so3.make_T(R_OB1, place.p_OB1) @ T_B1B
         T_OB[:, :3, :3] = so3.nearest_rotation(T_OB[:, :3, :3])  # the next clip composes on it: no round-off kept
         v_O = target.v @ R_OB1.T

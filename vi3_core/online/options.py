@@ -19,6 +19,11 @@ class OnlineOptions:
         or missing IMU restarts the window (biases survive, widened by their random walk);
     online_max_bridge_sigma: m; a clip placed in odom through a bridge whose position 1-sigma exceeds this starts a new
         segment of the odom trajectory (the placement is the IMU's best guess, but not continuous in any useful sense);
+    odom_max_scale_sigma: a clip whose scale the claim gate (``max_scale_sigma``) refuses is placed in odom all the
+        same where the window's fit of it settled on a positive scale known to this relative 1-sigma
+        (``chain.OdomChain.odometry_only``): the odometry goes on through such stretches at the window's scale, its
+        uncertainty counting the sigma, where the IMU alone would bridge them; nothing else of the clip is published
+        (at or below ``max_scale_sigma``, 0 for one: only claimed clips are placed);
     online_consistency_p: a clip whose whitened residual in the window (its positions and its velocity tie) has a
         chi-square tail probability below this, or whose own scale disagrees with the window's at this level
         (``estimator.scale_agreement``), is inconsistent with the window: rejected and named, the window unchanged;
@@ -40,6 +45,7 @@ class OnlineOptions:
     online_max_clips: int = 12
     online_max_bridge: float = 60.0
     online_max_bridge_sigma: float = 1.0
+    odom_max_scale_sigma: float = 0.1
     online_consistency_p: float = 1e-3
     online_max_rejects: int = 3
     online_bg_window: float = 20.0
@@ -51,7 +57,7 @@ class OnlineOptions:
         positive = ("online_window", "online_max_clips", "online_max_bridge", "online_max_bridge_sigma",
                     "online_consistency_p", "online_max_rejects", "online_bg_window")
         bad = [name for name in positive if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0)]
-        bad += [name for name in ("shared_frames", "shared_max_gap", "link_sigma_floor")
+        bad += [name for name in ("shared_frames", "shared_max_gap", "link_sigma_floor", "odom_max_scale_sigma")
                 if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0)]
         if bad or not self.online_consistency_p < 1.0 or self.online_max_clips < 2:
             raise ValueError(f"OnlineOptions: {', '.join(bad) or 'online_consistency_p < 1, online_max_clips >= 2'} "
