@@ -3,7 +3,7 @@ over uXRCE-DDS (``px4_odom``) and ``nav_msgs/Odometry`` for MAVROS's odometry pl
 to PX4 or ArduPilot as MAVLink ODOMETRY. How to set up the flight stack: docs/node.md, "Feeding PX4 / ArduPilot".
 
 What is sent when. Nothing before the first chained clip (the first claimed scale, or the first window scale within
-``odom_max_scale_sigma``: ``chain.OdomChain.odometry_only``). With ``flight_odom_source`` imu
+``odom_max_scale_sigma``: ``chain.OdomChain.places_unclaimed``). With ``flight_odom_source`` imu
 (the default) one sample per ``~/odom/imu`` message: the same propagated state, at up to ``imu_odom_rate``, stopping
 and resuming with it (``imu_odom_max_sigma``); with ``clip`` one per ``~/odom`` (the chained clip's last frame).
 

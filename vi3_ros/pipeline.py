@@ -143,6 +143,7 @@ class Pipeline:
         self._period_drops: collections.Counter[str] = collections.Counter()
         self._previous_reasons: frozenset[str] = frozenset()
         self.outcomes: collections.Counter[str] = collections.Counter()
+        self.odom_only = 0  # clips placed in ~/odom at the window's scale without a claim (``places_unclaimed``)
         self.output_errors: collections.Counter[str] = collections.Counter()  # messages not built, by output key
         self.message_drops: collections.Counter[str] = collections.Counter()  # drops before the buffer, by reason
         self.closing = False  # set by close(): outputs of a clip still running are not published
@@ -278,6 +279,9 @@ class Pipeline:
                 else None
             self.outputs.geometry(clip, outcome.result.geometry, prefix="", T_OC1=T_OC1)
         if chained is not None:
+            if not outcome.init.ok:
+                with self._lock:
+                    self.odom_only += 1
             anchor = self.outputs.odom(clip, outcome, self.stream.trajectory)
             if self.imu_odom is not None:
                 self.imu_odom.restart(outcome.state, self._imu_since, raw.epoch, anchor)
@@ -358,6 +362,7 @@ class Pipeline:
                       "worker_processed": self.worker.processed,
                       "worker_replaced": self.worker.replaced, "worker_errors": self.worker.errors}
             values.update({f"outcome_{k}": n for k, n in sorted(self.outcomes.items())})
+            values["odom_only"] = self.odom_only
             values.update({f"output_error_{k}": n for k, n in sorted(self.output_errors.items())})
             values.update({f"drop_{k}": n for k, n in sorted((self.buffer.counts + self.message_drops).items())})
         if self.imu_odom is not None:

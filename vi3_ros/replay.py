@@ -278,10 +278,11 @@ class ReplaySummary:
     drops: dropped input messages and clips by reason; latencies_ms: processing time per processed clip; wall_s:
     replay wall time (backbone loading excluded); bag_s: span of the input's stamps; frames: camera frames read
     (dropped ones included); written: messages per output topic; output: where they are (``--output``, or the
-    partial output when no clip produced a result); realtime: fed at the recorded rate (``feed_lag_ms``: the most the
-    feeding fell behind that rate, reading and decoding the input); checked: clips with a result (not skipped),
-    gyro_failures: those of them the gyro check rejected (``hint``); output_errors: messages that could not be built,
-    by output (a bug; each clip's status names its own)."""
+    partial output when no clip produced a result or odometry); realtime: fed at the recorded rate
+    (``feed_lag_ms``: the most the feeding fell behind that rate, reading and decoding the input); checked: clips
+    with a result (not skipped), gyro_failures: those of them the gyro check rejected (``hint``); output_errors:
+    messages that could not be built, by output (a bug; each clip's status names its own); odom_only: clips placed in
+    ``~/odom`` at the window's scale without a claim (``odom_max_scale_sigma``), an output of their own."""
 
     clips: int = 0
     outcomes: Counter = field(default_factory=Counter)
@@ -297,6 +298,7 @@ class ReplaySummary:
     checked: int = 0
     gyro_failures: int = 0
     output_errors: Counter = field(default_factory=Counter)
+    odom_only: int = 0
 
     @property
     def hint(self) -> str:
@@ -331,7 +333,7 @@ class ReplaySummary:
         def num(x: float, digits: int) -> float | None:
             return round(x, digits) if np.isfinite(x) else None
 
-        return {"clips": self.clips, "results": self.results, "frames": self.frames,
+        return {"clips": self.clips, "results": self.results, "odom_only": self.odom_only, "frames": self.frames,
                 "outcomes": dict(sorted(self.outcomes.items())), "drops": dict(sorted(self.drops.items())),
                 "median_latency_ms": num(self.median_latency_ms, 1), "wall_s": round(self.wall_s, 3),
                 "bag_s": round(self.bag_s, 3), "realtime_factor": num(self.realtime_factor, 3),
@@ -343,7 +345,8 @@ class ReplaySummary:
 
     def text(self) -> str:
         d = self.as_dict()
-        lines = [f"clips: {d['clips']}  outcomes: {d['outcomes'] or '-'}", f"drops: {d['drops'] or '-'}",
+        lines = [f"clips: {d['clips']}  outcomes: {d['outcomes'] or '-'}  placed in odom without a claim: "
+                 f"{d['odom_only']}", f"drops: {d['drops'] or '-'}",
                  f"median latency: {d['median_latency_ms']} ms  bag: {d['bag_s']} s  wall: {d['wall_s']} s  "
                  f"realtime factor: {d['realtime_factor']}"]
         lines += [f"  {topic}: {n}" for topic, n in d["written"].items()]
@@ -521,6 +524,7 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
             summary.clips = pipeline.buffer.clips
             summary.drops = pipeline.drop_counts
             summary.outcomes, summary.output_errors = Counter(pipeline.outcomes), Counter(pipeline.output_errors)
+            summary.odom_only = pipeline.odom_only
             summary.written = Counter(sink.counts)
             interrupts.hold()  # the output is finished from here on: a signal is recorded (the command reports it)
         except BaseException as err:
@@ -533,7 +537,7 @@ def replay(input_path: str | Path, output: str | Path, *, settings: Settings, co
                 raise ReplayAborted(f"{why}; {kept_text(partial)}", partial) from err
             raise
         try:
-            summary.output = sink.commit() if summary.results else sink.abandon()
+            summary.output = sink.commit() if summary.results or summary.odom_only else sink.abandon()
         except (OSError, DataError) as err:
             why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
             raise ReplayAborted(f"writing {output}: {why}; nothing was written", None) from err

@@ -270,15 +270,15 @@ def test_only_a_settled_window_scale_within_odom_max_scale_sigma_goes_into_odom_
     The same result is not placed when its fit had not settled, was the clip's alone, or is above the sigma."""
     est, online, _, _ = _run(seq, init_options=InitOptions(max_scale_sigma=0.001))
     assert not any(r.ok for r in online)
-    chain, placed = est.chain, [r for r in online if est.chain.odometry_only(r)]
+    chain, placed = est.chain, [r for r in online if est.chain.places_unclaimed(r)]
     assert len(placed) >= len(online) // 2 and len(chain.trajectory.stamps) > 0
     r = placed[-1]
-    assert not chain.odometry_only(replace(r, fit=replace(r.fit, settled=False)))
-    assert not chain.odometry_only(replace(r, fit=replace(r.fit, window_clips=1)))
-    assert not chain.odometry_only(replace(r, fit=replace(r.fit, scale_rel_sigma=0.11)))
-    assert not chain.odometry_only(replace(r, fit=replace(r.fit, lam=-r.fit.lam)))
+    assert not chain.places_unclaimed(replace(r, fit=replace(r.fit, settled=False)))
+    assert not chain.places_unclaimed(replace(r, fit=replace(r.fit, window_clips=1)))
+    assert not chain.places_unclaimed(replace(r, fit=replace(r.fit, scale_rel_sigma=0.11)))
+    assert not chain.places_unclaimed(replace(r, fit=replace(r.fit, lam=-r.fit.lam)))
     # the chained positions are metric: the last placed clip's displacement against the truth
-    k = max(i for i, x in enumerate(online) if chain.odometry_only(x))
+    k = max(i for i, x in enumerate(online) if chain.places_unclaimed(x))
     clip = make_clip(seq, sample_clips(len(seq.stamps), n=8, stride=2, mode="sliding")[k], with_depth=False)
     T = chain.state.T_OB
     moved, true = np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3]), np.linalg.norm(clip.gt.T_WB[-1, :3, 3] -

@@ -90,14 +90,19 @@ def test_the_odometry_goes_on_where_a_scale_is_known_too_loosely_to_claim(takeof
     assert sum(o.chained is not None for o in in_flight) >= 0.8 * len(in_flight)
 
     def drift(outcomes) -> float:
-        poses = {}  # the first clip to place a frame places it, as in the odom trajectory
+        poses, starts, segment = {}, [], None  # the first clip to place a frame places it, as odom does
         for o, _ in outcomes:
             if o.chained is not None:
+                if segment is not None and o.segment != segment:
+                    starts.append(min(float(t) for t in o.chained.stamps if float(t) not in poses))
+                segment = o.segment
                 for t, T_OB, T_WB in zip(o.chained.stamps, o.chained.T_OB, o.clip.gt.T_WB):
                     poses.setdefault(float(t), (T_OB, T_WB))
         stamps = np.array(sorted(poses))
         return chained_metrics(np.stack([poses[t][0] for t in stamps]), np.stack([poses[t][1] for t in stamps]),
-                               stamps=stamps).drift_pct
+                               stamps=stamps, segment_starts=starts).drift_pct
+
+    assert len({o.segment for o in placed}) == 1  # one odom segment through the unclaimed clips
 
     claimed = _run(takeoff, OnlineOptions(odom_max_scale_sigma=0.0))  # the claimed clips only, at the shipped gate
     assert drift(loose) < 3.0 and drift(loose) < drift(claimed) + 1.0, (drift(loose), drift(claimed))

@@ -83,7 +83,8 @@ def test_px4_odometry_is_sent_from_the_first_claim_and_resets_at_the_new_segment
     # One per ~/odom/imu message, its sample's stamp in microseconds; in replay published at the measurement time.
     assert samples.tolist() == [round(t / 1000) for t in imu] and len(samples) > 300
     assert all(o.timestamp_us == o.timestamp_sample_us for o in px4)
-    # Nothing before the first claimed scale's last frame (clip 0 claimed none), none while the IMU was missing.
+    # Nothing before the first chained clip's last frame (clip 0, a window of one, is not placed), none while the IMU
+    # was missing.
     first_claim = float(clips[1]["t_last"])
     assert samples[0] * 1e-6 > first_claim and samples[0] * 1e-6 - first_claim < 0.02
     second_pass = samples * 1000 > seq.stamps_ns[-1] + GAP_NS // 2
@@ -93,11 +94,36 @@ def test_px4_odometry_is_sent_from_the_first_claim_and_resets_at_the_new_segment
     assert np.array_equal(counters, second_pass.astype(int))
     assert {(o.pose_frame, o.velocity_frame) for o in px4} == {(POSE_FRAME_FRD, VELOCITY_FRAME_BODY_FRD)}
     # quality: the anchoring clip's relative scale sigma (rounded in ~/status) against max_scale_sigma 0.04
-    anchors = [float(c["t_last"]) for c in clips if c["result"] == "init"]
-    rel = [float(c["scale_rel_sigma"]) for c in clips if c["result"] == "init"]
+    anchors = [float(c["t_last"]) for c in clips if c["odom"] != "not placed"]
+    rel = [float(c["scale_rel_sigma"]) for c in clips if c["odom"] != "not placed"]
     for o in px4:  # the latest clip chained before the sample, or the one before (the sample completing a clip)
         k = int(np.searchsorted(anchors, o.timestamp_sample_us * 1e-6)) - 1
         assert any(abs(o.quality - scale_quality(rel[j], 0.04)) <= 1 for j in {max(k - 1, 0), k}), (o, rel)
+
+
+def test_a_scale_too_loose_to_claim_is_flown_at_quality_1_and_nothing_else_of_it_published(cache_dir, tmp_path):
+    """max_scale_sigma 0.1 % claims nothing: the clips the window knows to odom_max_scale_sigma go into ~/odom and to
+    PX4 at quality 1 (EKF2_EV_QMIN 2 refuses them), their ~/status says so, no poses, depth or points are published,
+    and the replay, whose only output is that odometry, keeps it and exits 0."""
+    _, src = _converted_bag(cache_dir, seconds=2.5, seed=1)
+    out = tmp_path / "out.mcap"
+    assert vi3_main(["replay", str(src), "--output", str(out), "--calib", str(_calib_file(tmp_path)), "--px4",
+                     "--no-progress", "--param", f"frd_axes={EUROC}", "--param", "base_frame=imu0",
+                     "--param", "max_scale_sigma=0.001"]) == 0
+    msgs: dict[str, list] = {}
+    with AnyReader([out]) as reader:
+        for c, t, raw in reader.messages():
+            msgs.setdefault(c.topic, []).append((t, reader.deserialize(raw, c.msgtype)))
+    clips = _clips(msgs)
+    placed = [c for c in clips if c["odom"] == "window scale, not claimed"]
+    assert all(c["result"] == "none" for c in clips) and len(placed) >= 2, clips
+    assert all(float(c["scale_rel_sigma"]) <= 0.1 for c in placed)
+    assert len(msgs["/vi3_node/odom"]) == len(placed)
+    assert not {"/vi3_node/poses", "/vi3_node/depth", "/vi3_node/points"} & msgs.keys()
+    px4 = _px4(msgs)
+    assert len(px4) > 100 and {o.quality for o in px4} == {1}
+    first = min(float(c["t_last"]) for c in placed)
+    assert px4[0].timestamp_sample_us * 1e-6 >= first - 1e-6
 
 
 def test_px4_states_are_odom_imus_in_ned_and_frd(flown):

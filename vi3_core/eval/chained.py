@@ -97,7 +97,7 @@ def segment_bounds(stamps: np.ndarray, starts) -> list[slice]:
 
 def gt_path_length(gt: GroundTruthTrack, t0: float, t1: float) -> float:
     """Metres ``gt`` flies between t0 and t1 s, over every sample of the track in between: a chained trajectory's
-    stretches without poses (clips not claimed or dropped) count with the distance actually flown, not as a straight
+    stretches without poses (clips not placed or dropped) count with the distance actually flown, not as a straight
     line."""
     inside = gt.t[(gt.t > t0) & (gt.t < t1)]
     p = gt.at(np.concatenate([[t0], inside, [t1]])).T_WB[:, :3, 3]

@@ -1,6 +1,6 @@
 """The continuous ``odom`` trajectory (REP-105: continuous, gravity-aligned, z up) that clips are chained into, and
 ``OdomChain``, which places each claimed clip in it, and each clip whose scale the online window knows well enough
-for odometry (``OdomChain.odometry_only``) though not for a claim.
+for odometry (``OdomChain.places_unclaimed``) though not for a claim.
 
 ``T_OB`` are body (IMU frame) poses in odom; gravity in odom is [0, 0, -|g|] by construction. Every chained clip is
 placed through the IMU from the last chained frame with both ends' velocities (the last pose without IMU;
@@ -134,9 +134,9 @@ def imu_gap(imu: ImuSamples | None, t0: float, t1: float, options: InitOptions) 
 
 
 class OdomChain:
-    """The claimed clips of a stream, and those ``odometry_only`` places, one after the other in odom: ``state`` (the
-    last chained clip, where the next bridge and the IMU-rate propagation start; None before the first) and
-    ``trajectory``.
+    """The claimed clips of a stream, and the unclaimed ones it ``places_unclaimed``, one after the other in odom:
+    ``state`` (the last chained clip, where the next bridge and the IMU-rate propagation start; None before the first)
+    and ``trajectory``.
 
     ``add(clip, result, imu)`` places an anchored clip (``imu``: the stream's kept IMU, covering the bridge from the
     last chained clip). Deterministic; not thread-safe."""
@@ -153,12 +153,13 @@ class OdomChain:
         self.trajectory = Trajectory(resets=previous.resets)
         self._new_segment = bool(len(previous.stamps) or previous.resets)
 
-    def odometry_only(self, init: InitResult) -> bool:
+    def places_unclaimed(self, init: InitResult) -> bool:
         """Whether a clip whose scale is not claimed goes into odom all the same: the online window fitted it with
         others (one clip alone is the clip's own initialisation), settled on a positive scale whose relative 1-sigma is
-        at most ``odom_max_scale_sigma``. Its metres flown then count that sigma in the odom's uncertainty
-        (``Trajectory.error_m``), as a claimed clip's count its own, where the IMU bridge over it would add the bias's
-        walk growing with T^2.5 (``placement``); its scale is still not published (no depth, points or poses)."""
+        at most ``odom_max_scale_sigma``. Its metres flown then count that sigma and its gravity's (it is levelled with
+        the window's gravity, as a claimed clip is) in the odom's uncertainty (``Trajectory.error_m``), where the IMU
+        bridge over it would add the bias's walk growing with T^2.5 (``placement``); its scale is still not published
+        (no depth, points or poses). Its velocity's sigma widens only the bridge to it."""
         fit = init.fit
         return (init.status is InitStatus.UNOBSERVABLE and fit is not None and fit.window_clips > 1 and fit.settled
                 and fit.lam > 0 and fit.scale_rel_sigma <= self.options.odom_max_scale_sigma
@@ -208,13 +209,14 @@ class OdomChain:
 
     def add(self, clip: Clip, result: AnchorResult, imu: ImuSamples | None) -> ChainedClip | None:
         """Place the anchored clip in odom (levelled with its gravity, yaw kept) and make it the state for the next
-        clip's bridge (through ``imu``). A clip that is neither ok nor ``odometry_only`` is not placed (None); one that
-        is ``odometry_only`` is placed at the window's scale, its velocities the IMU's from the window's state."""
+        clip's bridge (through ``imu``). A clip that is neither ok nor ``places_unclaimed`` is not placed (None); an
+        unclaimed one is placed at the window's scale (its poses the backbone's times 1 / lam, as a claim's would be),
+        its velocities the IMU's from the window's state."""
         init, fit, T_BC = result.init, result.init.fit, clip.T_BC
         target = result.target or init.target
         if init.ok and target is not None and result.mode != "none":
             T_wc, v1 = result.geometry.T_wc, init.v1
-        elif self.odometry_only(init):
+        elif self.places_unclaimed(init):
             T_wc = result.base.T_wc.copy()
             T_wc[:, :3, 3] /= fit.lam
             v1 = fit.v1
@@ -232,7 +234,6 @@ class OdomChain:
             last = self.trajectory.stamps[-1] if len(self.trajectory.stamps) else -np.inf
             self.trajectory.start_segment(float(clip.stamps[np.argmax(clip.stamps > last)]))
             self._new_segment = False
-        fit = init.fit
         self.state = OdomState(np.asarray(clip.stamps, dtype=np.float64), T_OB, v_O, np.asarray(init.bg),
                                np.asarray(init.ba), fit.v1_sigma if fit is not None else 0.0,
                                fit.g_sigma if fit is not None else 0.0)

@@ -13,7 +13,7 @@ scale over time. A gap in the IMU (or a bridge longer than ``online_max_bridge``
 ``online_max_rejects`` inconsistent clips in a row restart the window (the accelerometer bias survives as a prior,
 the gyro-bias median and the odom attitude survive as they are); a window of one clip (the first, or a restart) is
 claimed only where the clip's own initialisation is. Every claimed clip is then placed in odom (``update``), and so is
-a clip whose window scale is known well enough for odometry though not for a claim (``OdomChain.odometry_only``).
+a clip whose window scale is known well enough for odometry though not for a claim (``OdomChain.places_unclaimed``).
 """
 
 from __future__ import annotations
@@ -397,7 +397,7 @@ class OnlineEstimator:
 
     def update(self, clip: Clip, result: AnchorResult) -> ChainedClip | None:
         """Place the anchored clip in odom (``OdomChain.add``) through the kept IMU. A clip that is neither ok nor
-        ``OdomChain.odometry_only``, or that ``initialise`` did not see last, is not placed."""
+        ``OdomChain.places_unclaimed``, or that ``initialise`` did not see last, is not placed."""
         pending, self._pending = self._pending, None
         if pending != float(clip.stamps[0]):
             return None

@@ -21,7 +21,7 @@ class OnlineOptions:
         segment of the odom trajectory (the placement is the IMU's best guess, but not continuous in any useful sense);
     odom_max_scale_sigma: a clip whose scale the claim gate (``max_scale_sigma``) refuses is placed in odom all the
         same where the window's fit of it settled on a positive scale known to this relative 1-sigma
-        (``chain.OdomChain.odometry_only``): the odometry goes on through such stretches at the window's scale, its
+        (``chain.OdomChain.places_unclaimed``): the odometry goes on through such stretches at the window's scale, its
         uncertainty counting the sigma, where the IMU alone would bridge them; nothing else of the clip is published
         (at or below ``max_scale_sigma``, 0 for one: only claimed clips are placed);
     online_consistency_p: a clip whose whitened residual in the window (its positions and its velocity tie) has a

@@ -70,9 +70,13 @@ def run(args: argparse.Namespace) -> int:
         # The replay holds signals from its last step on (the output is final): one that came is reported below.
         print(to_json(summary.as_dict()) if args.json else f"wrote {summary.output}\n{summary.text()}")
         if trap.signum is not None:
-            return _interrupted(trap, f"after the replay finished: {summary.output} is complete" if summary.results
+            return _interrupted(trap, f"after the replay finished: {summary.output} is complete"
+                                if summary.results or summary.odom_only
                                 else f"after the replay finished without a result; {kept_text(summary.output)}")
-        if not summary.results:
+        if not summary.results and summary.odom_only:
+            print(f"vi3 replay: no clip claimed a scale (outcomes {dict(summary.outcomes)}); {summary.odom_only} were "
+                  "placed in ~/odom at the window's scale (odom_max_scale_sigma)", file=sys.stderr)
+        elif not summary.results:
             print(f"vi3 replay: no clip produced a result: {summary.why_nothing()}; "
                   f"{kept_text(summary.output)}", file=sys.stderr)
             return 1
