@@ -160,20 +160,26 @@ def _takeoff_claims(v203) -> list[tuple[float, float, float, str]]:
             for clip, _, truth, init in _chained(v203, PoseNoise(pos_m=0.003, rot_deg=0.1), seed=0, max_clips=17)]
 
 
-def test_a_member_the_window_cannot_fix_does_not_hold_up_the_newest_clips_claim(v203):
+@pytest.fixture(scope="module")
+def takeoff_claims(v203) -> list[tuple[float, float, float, str]]:
+    """``_takeoff_claims`` at the shipped ``SETTLED_SIGMAS``, for both tests below."""
+    return _takeoff_claims(v203)
+
+
+def test_a_member_the_window_cannot_fix_does_not_hold_up_the_newest_clips_claim(takeoff_claims):
     """On the real V2_03 flight's take-off the window holds clips from before it whose scale it cannot fix: one's lam
     swings from step to step (from 19 to 430, through zero), so the fit never meets its tolerance, which is relative
     to each lam. The newest clip's scale moves by a few hundredths of its sigma there: it has settled
     (``FitResult.settled``) and is claimed, right."""
-    claims = [(t, e, s) for t, e, s, _ in _takeoff_claims(v203) if np.isfinite(e)]
+    claims = [(t, e, s) for t, e, s, _ in takeoff_claims if np.isfinite(e)]
     assert len(claims) >= 4 and claims[0][0] < 8.0, claims
     assert all(abs(e) < 0.1 and abs(e) < 3 * s for _, e, s in claims), claims
 
 
-def test_a_clip_whose_fit_has_not_settled_is_not_claimed_and_says_why(v203, monkeypatch):
+def test_a_clip_whose_fit_has_not_settled_is_not_claimed_and_says_why(v203, takeoff_claims, monkeypatch):
     """The same take-off where no step still to go is small enough (``SETTLED_SIGMAS`` 0): no clip is claimed, and
     each one claimed above names the window's step."""
-    claimed = [t for t, e, _, _ in _takeoff_claims(v203) if np.isfinite(e)]
+    claimed = [t for t, e, _, _ in takeoff_claims if np.isfinite(e)]
     monkeypatch.setattr(metric_fit, "SETTLED_SIGMAS", 0.0)
     refused = _takeoff_claims(v203)
     assert not any(np.isfinite(e) for _, e, _, _ in refused)
