@@ -23,7 +23,7 @@ from msg_adapters.poses import odometry, path, pose_array, tf_message
 from msg_adapters.types import MessageTypes
 from vi3_core.backbones.front_end import FrameLosses
 from vi3_core.camera import backproject
-from vi3_core.online import ClipOutcome, OnlineDecision, Trajectory
+from vi3_core.online import ClipOutcome, InOdom, OnlineDecision, Trajectory
 from vi3_core.online.calibration import RigEstimate
 from vi3_core.types import AnchorResult, Clip, Geometry, InitResult, InitStatus
 from vi3_ros.flight_odom import Anchor, FlightOdometry
@@ -193,7 +193,7 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
                 clip_frame: str, result: AnchorResult | None = None, decision: OnlineDecision | None = None,
                 trajectory: Trajectory | None = None, rig: RigEstimate | None = None, rig_note: str = "",
                 output_errors: Sequence[tuple[str, str]] = (), front_end: dict | None = None,
-                chained: bool | None = None) -> DiagStatus:
+                in_odom: InOdom | None = None) -> DiagStatus:
     """The ``~/status`` entry of one result of the node's clip ``index``, processed as ``clip`` (the frames it spans:
     ``t_first``, ``t_last``): ``kind`` (init | cond | ttr | none), its initialisation ``init``, the
     wall-clock ``latency_s``, the input drops since the previous status (``drops``, "reason:count, ..."); with the
@@ -202,9 +202,9 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
     ``rig``'s self-calibration (key ``rig``; ``rig_note``: why the clip did not add to it or take all of it); the
     outputs of the clip that could not be built (``ClipPublisher.take_errors``: key ``output_errors``, level ERROR);
     ``front_end``: where the backbone's front end lost the tracks into the frames this clip tracked (the ``classical``
-    backbone's ``front_end.FrameLosses`` as a dict; key ``front_end``); ``chained``: whether the clip was placed in
-    odom (key ``odom``: ``claimed``, ``window scale, not claimed`` (``odom_max_scale_sigma``) or ``not placed``; None:
-    not known, no key)."""
+    backbone's ``front_end.FrameLosses`` as a dict; key ``front_end``); ``in_odom``: how the clip went into odom
+    (key ``odom``: ``claimed``, ``window scale, not claimed`` (``odom_max_scale_sigma``) or ``not placed``; None: not
+    known, no key)."""
     level = Level.OK if init.ok else (Level.WARN if init.status is InitStatus.UNOBSERVABLE else Level.ERROR)
     if drops and level is Level.OK:
         level = Level.WARN
@@ -230,8 +230,8 @@ def clip_status(index: int, clip: Clip, init: InitResult, kind: str, latency_s: 
         if decision.traj_depth_sigma > 0:
             values["traj_depth_sigma"] = f"{decision.traj_depth_sigma:.3g}"
         values["odom_segment"] = len(trajectory.resets)  # 0: the first; each reset starts one (its first frame)
-        if chained is not None:
-            values["odom"] = "not placed" if not chained else "claimed" if init.ok else "window scale, not claimed"
+        if in_odom is not None:
+            values["odom"] = in_odom.value
         if trajectory.resets:
             values["odom_segment_start"] = f"{trajectory.resets[-1]:.9f}"
     if rig is not None:

@@ -55,7 +55,7 @@ from vi3_core.backbones import make_backbone
 from vi3_core.backbones.base import Backbone
 from vi3_core.dataset.calib import load_calib
 from vi3_core.errors import CalibrationError, DataError
-from vi3_core.online import OnlineDecision, StreamEstimator
+from vi3_core.online import InOdom, OnlineDecision, StreamEstimator
 from vi3_core.online.calibration import RigEstimate
 from vi3_core.threads import use_threads
 from vi3_core.types import AnchorResult, Clip, InitResult
@@ -279,14 +279,14 @@ class Pipeline:
                 else None
             self.outputs.geometry(clip, outcome.result.geometry, prefix="", T_OC1=T_OC1)
         if chained is not None:
-            if not outcome.init.ok:
+            if outcome.in_odom is InOdom.WINDOW_SCALE:
                 with self._lock:
                     self.odom_only += 1
             anchor = self.outputs.odom(clip, outcome, self.stream.trajectory)
             if self.imu_odom is not None:
                 self.imu_odom.restart(outcome.state, self._imu_since, raw.epoch, anchor)
         self._publish_status(raw, clip, outcome.init, outcome.mode, latency, result=outcome.result,
-                             decision=outcome.decision, chained=chained is not None)
+                             decision=outcome.decision, in_odom=outcome.in_odom)
 
     def _backbone_delay(self) -> bool:
         """``backbone_delay`` s before the backbone; False when ``close`` ended it (the clip is abandoned)."""
@@ -320,17 +320,17 @@ class Pipeline:
 
     def _publish_status(self, raw: RawClip, clip: Clip, init: InitResult, kind: str, latency: float, *,
                         result: AnchorResult | None, decision: OnlineDecision | None,
-                        chained: bool | None = None) -> None:
+                        in_odom: InOdom | None = None) -> None:
         """~/status (and, for final results, /diagnostics) of one result of ``raw`` processed as ``clip``; ``result``
         None when anchoring did not run (data rejected before the backbone); ``decision``: the online window's (None
-        without online); ``chained``: whether the clip was placed in odom (None: not known yet)."""
+        without online); ``in_odom``: how the clip went into odom (None: not known yet)."""
         errors = self.outputs.take_errors()
         with self._lock:
             self.output_errors.update(key for key, _ in errors)
         status = clip_status(raw.index, clip, init, kind, latency, drops=self._take_input_drops(),
                              clip_frame=self.settings.frames.clip_frame, result=result, decision=decision,
                              trajectory=self.stream.trajectory, rig=self._rig, rig_note=self._rig_note,
-                             output_errors=errors, front_end=self._front_end(result), chained=chained)
+                             output_errors=errors, front_end=self._front_end(result), in_odom=in_odom)
         self._emit(ClipReport(raw.index, kind, result_reason(init, result), int(raw.stamps_ns[-1]), result, latency),
                    status, final=kind != "init" or self.settings.stream.mode == "init")
 

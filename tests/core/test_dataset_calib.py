@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -78,6 +79,24 @@ def test_undistortion_is_exact_and_built_once():
     np.testing.assert_allclose(maps, raw, atol=1e-2)
     # With EuRoC's barrel distortion every undistorted pixel has a source inside the raw image.
     assert und.map_x.min() >= 0 and und.map_x.max() <= 751 and und.map_y.min() >= 0 and und.map_y.max() <= 479
+
+
+@pytest.mark.parametrize("model, dist", [("radtan", np.zeros(4)), ("none", np.zeros(0))])
+def test_a_camera_without_distortion_is_not_remapped_and_gives_the_remaps_bits(model, dist):
+    """A rectified stream's frames are copied, not remapped: the same bits as a remap through the model's own maps
+    (uint8 and float, linear and nearest), which the equidistant model, whose zero coefficients still map angles to
+    radii, keeps."""
+    calib = replace(EUROC_CAM0, dist_model=model, dist=dist)
+    und = calib.undistorter()
+    assert und.map_x is None and np.array_equal(und.K, calib.K)
+    maps = cv2.initUndistortRectifyMap(calib.K, np.zeros(4), None, calib.K, calib.size, cv2.CV_32FC1)
+    rng = np.random.default_rng(0)
+    for image in (rng.integers(0, 256, (480, 752), dtype=np.uint8), rng.random((480, 752, 3), dtype=np.float32)):
+        for interpolation in (cv2.INTER_LINEAR, cv2.INTER_NEAREST):
+            out = und.apply(image, interpolation=interpolation)
+            assert out is not image
+            assert np.array_equal(out, cv2.remap(image, *maps, interpolation, borderMode=cv2.BORDER_CONSTANT))
+    assert replace(EUROC_CAM0, dist_model="equidistant", dist=np.zeros(4)).undistorter().map_x is not None
 
 
 @pytest.mark.parametrize("body, message", [

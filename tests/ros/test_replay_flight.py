@@ -119,6 +119,9 @@ def test_a_scale_too_loose_to_claim_is_flown_at_quality_1_and_nothing_else_of_it
     assert all(c["result"] == "none" for c in clips) and len(placed) >= 2, clips
     assert all(float(c["scale_rel_sigma"]) <= 0.1 for c in placed)
     assert len(msgs["/vi3_node/odom"]) == len(placed)
+    counted = [int(kv.value) for _, m in msgs["/diagnostics"] for st in m.status for kv in st.values
+               if kv.key == "odom_only"]
+    assert counted and counted[-1] == len(placed), counted  # /diagnostics counts them too
     assert not {"/vi3_node/poses", "/vi3_node/depth", "/vi3_node/points"} & msgs.keys()
     px4 = _px4(msgs)
     assert len(px4) > 100 and {o.quality for o in px4} == {1}

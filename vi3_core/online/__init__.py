@@ -6,7 +6,7 @@ per-clip loop of a stream that the node, replay and the evaluation drive."""
 from vi3_core.online.chain import ChainedClip, OdomChain, OdomState, Trajectory, gravity_align
 from vi3_core.online.estimator import OnlineDecision, OnlineEstimator
 from vi3_core.online.options import OnlineOptions
-from vi3_core.online.stream import ClipOutcome, StreamEstimator, StreamOptions
+from vi3_core.online.stream import ClipOutcome, InOdom, StreamEstimator, StreamOptions
 
-__all__ = ["ChainedClip", "ClipOutcome", "OdomChain", "OdomState", "OnlineDecision", "OnlineEstimator",
+__all__ = ["ChainedClip", "ClipOutcome", "InOdom", "OdomChain", "OdomState", "OnlineDecision", "OnlineEstimator",
            "OnlineOptions", "StreamEstimator", "StreamOptions", "Trajectory", "gravity_align"]

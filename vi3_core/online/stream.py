@@ -18,6 +18,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
 
 import cv2
 import numpy as np
@@ -69,6 +70,14 @@ class StreamOptions:
             raise ValueError("the online window is GT-free: init_source 'gt' needs online false")
 
 
+class InOdom(StrEnum):
+    """How a clip went into odom (``ClipOutcome.in_odom``; the node's ``~/status`` key ``odom``)."""
+
+    CLAIMED = "claimed"
+    WINDOW_SCALE = "window scale, not claimed"  # ``OdomChain.places_unclaimed``: odometry only
+    NOT_PLACED = "not placed"
+
+
 @dataclass
 class ClipOutcome:
     """What one clip changed.
@@ -100,6 +109,13 @@ class ClipOutcome:
     def mode(self) -> str:
         """The anchoring mode that ran ("none" when the init is not ok or the backbone did not run)."""
         return self.result.mode if self.result is not None else "none"
+
+    @property
+    def in_odom(self) -> InOdom:
+        """How the clip went into odom: its claim, the window's scale without a claim, or not at all."""
+        if self.chained is None:
+            return InOdom.NOT_PLACED
+        return InOdom.CLAIMED if self.init.ok else InOdom.WINDOW_SCALE
 
 
 class StreamEstimator:
@@ -314,4 +330,4 @@ class StreamEstimator:
         return len(self.trajectory.resets)
 
 
-__all__ = ["INIT_SOURCES", "MAX_READOUT_S", "ClipOutcome", "StreamEstimator", "StreamOptions"]
+__all__ = ["INIT_SOURCES", "MAX_READOUT_S", "ClipOutcome", "InOdom", "StreamEstimator", "StreamOptions"]

@@ -345,7 +345,7 @@ class ClassicalBackbone(Backbone):
         dev = self.device
         gray = images if images.ndim == 3 else np.stack([cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in images])
         # the working resolution, in float so that a faint texture keeps its sub-grey-level shading
-        small, K_w = _area_resized(gray.astype(np.float32) / np.float32(255.0), K, (h, w))
+        small, K_w = _area_resized(np.divide(gray, np.float32(255.0), dtype=np.float32), K, (h, w))
         img = torch.from_numpy(small).to(dev)[:, None].expand(n, 3, h, w)
         K_t = torch.as_tensor(K_w, dtype=torch.float32, device=dev).expand(n, 3, 3)
 

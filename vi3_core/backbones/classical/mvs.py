@@ -59,9 +59,11 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
     steps = np.linspace(0.0, 1.0, n_depths)
     area = float(window * window)
 
-    def box(x: np.ndarray) -> np.ndarray:
-        """Sums over ``window`` x ``window`` boxes of each channel of x [h,w,c], edges replicated."""
-        return cv2.boxFilter(x, -1, (window, window), normalize=False, borderType=cv2.BORDER_REPLICATE).reshape(x.shape)
+    def box(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Sums over ``window`` x ``window`` boxes of each channel of x [h,w,c], edges replicated (into ``out``, of
+        x's shape, where given)."""
+        return cv2.boxFilter(x, -1, (window, window), dst=out, normalize=False,
+                             borderType=cv2.BORDER_REPLICATE).reshape(x.shape)
 
     # Each image normalised to zero mean, unit variance over its own windows before warping, so that the
     # normalised correlation of the warped source needs two box sums per plane instead of five.
@@ -82,10 +84,15 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
         src = sources[i]
         D = n_depths
         zncc = np.empty((len(src), h, w, D), np.float32)
-        prod = np.empty((h, w, 2 * D), np.float32)
+        # buffers reused for every source: fresh [h,w,D] arrays cost their first writes' page faults each time
+        wr, ww, sum_wr, den = (np.empty((h, w, D), np.float32) for _ in range(4))
+        blocks = [slice(d0, min(d0 + planes_per_remap, D)) for d0 in range(0, D, planes_per_remap)]
+        maps = {b.stop - b.start: [np.empty((h, w, b.stop - b.start), np.float32) for _ in range(3)] for b in blocks}
         warped = np.empty((h, w, D), np.float32)
         behind = np.empty((h, w, D), bool)
+        unseen = np.empty((h, w, D), bool)
         ref = frames_normed[i][..., None]
+        energy_i = np.ascontiguousarray(energy[..., i:i + 1])
         eps = np.float32(1e-6 * area * area)
         for s, j in enumerate(src):
             R_ji = R_wc[j].T @ R_wc[i]  # reference camera -> source camera
@@ -98,25 +105,24 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
             rays = [(H0[r, 0] * u + H0[r, 1] * v + H0[r, 2])[..., None] for r in range(3)]  # [h,w,1] each
             qKt = q[:, None] * Kt  # [D,3]
             with np.errstate(divide="ignore", invalid="ignore"):  # z <= 0: see ``behind``
-                for d0 in range(0, D, planes_per_remap):
-                    d = slice(d0, d0 + planes_per_remap)
-                    z = rays[2] + qKt[d, 2]
-                    np.less_equal(z, 1e-6, out=behind[..., d])  # behind the source camera: a plane partly behind it
-                    maps = [((rays[r] + qKt[d, r]) / z).reshape(h, -1) for r in range(2)]
-                    warped[..., d] = cv2.remap(frames_normed[j], *maps, **_WARP).reshape(h, w, -1)
-            unseen = np.isnan(warped)  # [h,w,D]
+                for d in blocks:
+                    zb, xb, yb = maps[d.stop - d.start]
+                    np.add(rays[2], qKt[d, 2], out=zb)
+                    np.less_equal(zb, 1e-6, out=behind[..., d])  # behind the source camera: a plane partly behind it
+                    np.divide(np.add(rays[0], qKt[d, 0], out=xb), zb, out=xb)
+                    np.divide(np.add(rays[1], qKt[d, 1], out=yb), zb, out=yb)
+                    warped[..., d] = cv2.remap(frames_normed[j], xb.reshape(h, -1), yb.reshape(h, -1),
+                                               **_WARP).reshape(h, w, -1)
+            np.isnan(warped, out=unseen)  # [h,w,D]
             unseen |= behind
             np.copyto(warped, 0.0, where=unseen)
             # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
-            # fractional shifts) from biasing the disparity toward whole pixels. Both box sums in one call.
-            np.multiply(warped, ref, out=prod[..., :D])
-            np.multiply(warped, warped, out=prod[..., D:])
-            sums = box(prod)
-            den = sums[..., D:]
-            np.multiply(den, energy[..., i:i + 1], out=den)
+            # fractional shifts) from biasing the disparity toward whole pixels.
+            box(np.multiply(warped, ref, out=wr), sum_wr)
+            np.multiply(box(np.multiply(warped, warped, out=ww), den), energy_i, out=den)
             np.sqrt(np.add(den, eps, out=den), out=den)
-            z = np.divide(sums[..., :D], den, out=zncc[s])  # in [-1, 1]
-            np.copyto(z, -2.0, where=unseen)
+            zs = np.divide(sum_wr, den, out=zncc[s])  # in [-1, 1]
+            np.copyto(zs, -2.0, where=unseen)
         # Mean of the best_k best sources that see the point (a surface seen by one source only keeps its score);
         # -1 where no source sees it.
         if best_k < len(src):
