@@ -17,12 +17,13 @@ def calib_from_camera_info(K: np.ndarray, dist_model: str, dist: np.ndarray, siz
                            T_BC: np.ndarray) -> CameraCalib:
     """A CameraCalib from ``msg_adapters.camera_info.camera_info_to_calib``'s output and T_BC [4,4].
 
-    plumb_bob maps to radtan when k3 = 0 (radtan has k1, k2, p1, p2); all-zero coefficients mean no distortion."""
+    plumb_bob maps to radtan when k3 = 0 (radtan has k1, k2, p1, p2); all-zero coefficients mean no distortion, but for
+    an equidistant (fisheye) lens, which maps angles to radii whatever its coefficients."""
     dist = np.asarray(dist, dtype=np.float64)
+    if dist_model == "equidistant":
+        return CameraCalib(K, "equidistant", dist if len(dist) else np.zeros(4), size, T_BC)
     if not dist.any():
         return CameraCalib(K, "none", np.zeros(0), size, T_BC)
-    if dist_model == "equidistant":
-        return CameraCalib(K, "equidistant", dist, size, T_BC)
     if dist_model in ("plumb_bob", "rational_polynomial") and not dist[4:].any():
         return CameraCalib(K, "radtan", dist[:4], size, T_BC)
     raise CalibrationError(f"CameraInfo distortion {dist_model} with coefficients {dist.tolist()} has terms beyond "

@@ -214,6 +214,9 @@ def test_plane_sweep_threads_follow_torch_unless_given(half_clip):
     assert follows.diagnostics()["mvs_workers"] == 1 and given.diagnostics()["mvs_workers"] == 3
     with pytest.raises(ValueError, match="threads must be >= 1, got 0"):
         ClassicalBackbone(threads=0)
+    for n_depths in (1, 129):  # one plane has no depth step; OpenCV's box filter sums at most 128 channels
+        with pytest.raises(ValueError, match=f"n_depths must be within 2..128, got {n_depths}"):
+            ClassicalBackbone(n_depths=n_depths)
 
 
 @pytest.mark.slow

@@ -159,5 +159,10 @@ def test_calibration_from_camera_info_and_tf():
     assert np.allclose(cal.current().T_BC, np.eye(4))
     with pytest.raises(CalibrationError, match="beyond"):
         calib_from_camera_info(c.K, "plumb_bob", np.array([0.1, 0, 0, 0, 0.01]), c.size, c.T_BC)
+    # zero coefficients: a rectified stream has no distortion, an ideal fisheye still maps angles to radii
+    assert calib_from_camera_info(c.K, "plumb_bob", np.zeros(5), c.size, c.T_BC).dist_model == "none"
+    for dist in (np.zeros(4), np.zeros(0)):
+        fisheye = calib_from_camera_info(c.K, "equidistant", dist, c.size, c.T_BC)
+        assert fisheye.dist_model == "equidistant" and fisheye.undistorter().map_x is not None
     file_cal = Calibration(c)
     assert file_cal.current() is c

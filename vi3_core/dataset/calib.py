@@ -39,7 +39,9 @@ class Undistorter:
     """Remaps a raw (distorted) image onto the pinhole image of intrinsics ``K`` [3,3] (same size).
 
     map_x, map_y: [H,W] float32 raw-pixel coordinates of each undistorted pixel centre; None for a camera without
-    distortion (a rectified stream), whose raw image is the pinhole image already.
+    distortion (a rectified stream), whose raw image is the pinhole image already: ``apply`` copies it, the same bits as
+    a remap through the identity maps for the images the pipeline undistorts (finite, of the calibrated size; a NaN
+    border with INTER_NEAREST only), at no cost (the remap took 2.3 ms a 1280x720 frame).
     """
 
     K: np.ndarray
@@ -50,7 +52,7 @@ class Undistorter:
               border_value: float = 0.0) -> np.ndarray:
         """Undistorted copy of ``image`` [H,W] or [H,W,C] (same dtype); pixels that map outside the raw image get
         ``border_value``."""
-        if self.map_x is None:  # the identity (a remap through it gives the same bits, at 2 ms a 1280x720 frame)
+        if self.map_x is None:
             return image.copy()
         return cv2.remap(image, self.map_x, self.map_y, interpolation, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=border_value)

@@ -71,7 +71,8 @@ class StreamOptions:
 
 
 class InOdom(StrEnum):
-    """How a clip went into odom (``ClipOutcome.in_odom``; the node's ``~/status`` key ``odom``)."""
+    """How a clip went into odom (``ClipOutcome.in_odom``): placed with its claim, placed at the window's scale without
+    one, or not placed."""
 
     CLAIMED = "claimed"
     WINDOW_SCALE = "window scale, not claimed"  # ``OdomChain.places_unclaimed``: odometry only

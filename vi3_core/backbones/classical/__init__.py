@@ -52,7 +52,7 @@ from vi3_core.backbones.base import (
     Prediction,
 )
 from vi3_core.backbones.classical.keyframes import KeyframeMap
-from vi3_core.backbones.classical.mvs import plane_sweep
+from vi3_core.backbones.classical.mvs import MAX_DEPTHS, plane_sweep
 from vi3_core.backbones.classical.poses import SfmResult, estimate_poses, project
 from vi3_core.backbones.classical.tracks import FrameTracker, TrackerOptions, Tracks
 from vi3_core.backbones.front_end import FrameLosses
@@ -182,6 +182,8 @@ class ClassicalBackbone(Backbone):
         super().__init__(device=device, dtype=dtype)
         if downscale < 1 or max_side < 64:
             raise ValueError(f"downscale must be >= 1 and max_side >= 64, got {downscale} and {max_side}")
+        if not 2 <= n_depths <= MAX_DEPTHS:
+            raise ValueError(f"n_depths must be within 2..{MAX_DEPTHS}, got {n_depths}")
         self.max_side = max_side
         self.downscale = downscale
         self.tracker = FrameTracker(tracker)

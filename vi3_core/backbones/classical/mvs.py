@@ -27,6 +27,8 @@ import numpy as np
 _WARP = dict(interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
 #: cv2.remap refuses maps with a side of SHRT_MAX or more; a frame's planes are warped as one [h, w*planes] map.
 _REMAP_MAX_SIDE = 32767
+#: the most planes a sweep takes: cv2.boxFilter sums at most 128 channels, the planes of one array
+MAX_DEPTHS = 128
 
 
 def select_sources(n: int, *, n_sources: int) -> np.ndarray:
@@ -47,9 +49,9 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
     frames of the clip.
 
     gray [n,h,w] float images; K [3,3] at that resolution; R_wc [n,3,3], t_wc [n,3] camera-to-world (any scale);
-    depth_range [n,2] (near, far) per frame in the poses' units; workers: threads sweeping reference frames
-    concurrently. Returns depth [r,h,w] (> 0, same units) and conf [r,h,w] in [0, 1], float32, of the r reference
-    frames.
+    depth_range [n,2] (near, far) per frame in the poses' units; n_depths: 2 to ``MAX_DEPTHS`` planes; workers: threads
+    sweeping reference frames concurrently. Returns depth [r,h,w] (> 0, same units) and conf [r,h,w] in [0, 1],
+    float32, of the r reference frames.
     """
     gray = np.asarray(gray, np.float32)
     n, h, w = gray.shape
@@ -118,10 +120,10 @@ def plane_sweep(gray: np.ndarray, K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndar
             np.copyto(warped, 0.0, where=unseen)
             # Dividing by the warped window's own energy keeps interpolation (which damps the warped texture at
             # fractional shifts) from biasing the disparity toward whole pixels.
-            box(np.multiply(warped, ref, out=wr), sum_wr)
+            s_wr = box(np.multiply(warped, ref, out=wr), sum_wr)
             np.multiply(box(np.multiply(warped, warped, out=ww), den), energy_i, out=den)
             np.sqrt(np.add(den, eps, out=den), out=den)
-            zs = np.divide(sum_wr, den, out=zncc[s])  # in [-1, 1]
+            zs = np.divide(s_wr, den, out=zncc[s])  # in [-1, 1]
             np.copyto(zs, -2.0, where=unseen)
         # Mean of the best_k best sources that see the point (a surface seen by one source only keeps its score);
         # -1 where no source sees it.
