@@ -153,7 +153,7 @@ def _information(pixel: tuple, r: torch.Tensor, vis: torch.Tensor, prior: tuple 
         return None
     var_px = float((w * (r**2).sum(-1)).sum()) / dof
     Hcc, Hcl = Hcc / var_px, Hcl / var_px
-    Hll_inv = _inv3(Hll / var_px + 1e-9 * torch.eye(3, dtype=Hll.dtype))
+    Hll_inv = _pinv_points(Hll / var_px)
     if prior is None:
         return Hcc, Hll_inv, Hcl, None
     Hp, Hcb, Hbb = prior
@@ -235,13 +235,42 @@ def _held_scale_sigma(R_cw: torch.Tensor, t_cw: torch.Tensor, r: torch.Tensor, v
     return math.sqrt(var) if var >= 0 and math.isfinite(var) else float("nan")
 
 
-def _inv3(A: torch.Tensor) -> torch.Tensor:
-    """Inverses [...,3,3] of invertible 3x3 matrices A [...,3,3] by the adjugate (elementwise, no LAPACK call)."""
+def _adjugate(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The adjugates [...,3,3] and determinants [...] of 3x3 matrices A [...,3,3] (elementwise, no LAPACK call)."""
     c0 = torch.linalg.cross(A[..., 1, :], A[..., 2, :])
     c1 = torch.linalg.cross(A[..., 2, :], A[..., 0, :])
     c2 = torch.linalg.cross(A[..., 0, :], A[..., 1, :])
-    det = (A[..., 0, :] * c0).sum(-1)
-    return torch.stack([c0, c1, c2], -1) / det[..., None, None]
+    return torch.stack([c0, c1, c2], -1), (A[..., 0, :] * c0).sum(-1)
+
+
+def _inv3(A: torch.Tensor) -> torch.Tensor:
+    """Inverses [...,3,3] of invertible 3x3 matrices A [...,3,3] by the adjugate."""
+    adj, det = _adjugate(A)
+    return adj / det[..., None, None]
+
+
+# A point's direction with less information than this share of its best is taken to carry none (its depth, seen at a
+# parallax near zero: a 1-sigma over a thousand times its lateral one).
+POINT_RTOL = 1e-6
+
+
+def _pinv_points(Hll: torch.Tensor) -> torch.Tensor:
+    """The points' inverse information blocks [m,3,3] from Hll [m,3,3] (symmetric, positive semi-definite), with
+    each block's directions under ``POINT_RTOL`` of its largest eigenvalue left out (a pseudo-inverse). Inverted
+    exactly, a block with a condition of 1e9 (a point on one ray from cameras that turn) enters the Schur complement
+    as terms that cancel to a part in 1e9 of themselves: the marginal sigmas then swing by tens of percent with the
+    last bits of the input, or come out negative. Well-conditioned blocks keep their adjugate inverse; the others go
+    through an eigendecomposition (every block with a direction under the tolerance has a determinant of at most
+    4 * POINT_RTOL times the cube of its mean eigenvalue; a NaN block stays NaN)."""
+    adj, det = _adjugate(Hll)
+    inv = adj / det[..., None, None]
+    mean = Hll.diagonal(dim1=-2, dim2=-1).sum(-1) / 3
+    weak = det <= 4 * POINT_RTOL * mean**3
+    if bool(weak.any()):
+        lam, V = torch.linalg.eigh(Hll[weak])
+        keep = lam > POINT_RTOL * lam[:, -1:]
+        inv[weak] = (V * torch.where(keep, 1.0 / torch.where(keep, lam, 1.0), 0.0)[:, None, :]) @ V.transpose(1, 2)
+    return inv
 
 
 class _Solved(NamedTuple):
