@@ -264,10 +264,10 @@ def _pinv_points(Hll: torch.Tensor) -> torch.Tensor:
     tens of percent with the last bits of the input, or comes out negative. Left out, such a direction is held rather
     than eliminated, as if the point's depth were known: optimistic by at most that point's own share of the
     cameras' information (such points are few: 1.5 % of the blocks of the test clip in
-    tests/core/test_frame_tracker.py, 0.2 % on a real handheld recording; there the held sigma is within 3 % of its
-    value computed exactly in extended precision). Well-conditioned blocks keep their adjugate inverse; the others
-    go through an eigendecomposition (every block with a direction under the tolerance has a determinant of at most
-    4 * POINT_RTOL times the cube of its mean eigenvalue; a NaN block stays NaN)."""
+    tests/core/test_frame_tracker.py, 0.2 % on a real handheld recording; on that test clip the held sigma is within
+    3 % of its value computed exactly in extended precision). Well-conditioned blocks keep their adjugate inverse;
+    the others go through an eigendecomposition (every block with a direction under the tolerance has a determinant
+    of at most 4 * POINT_RTOL times the cube of its mean eigenvalue; a NaN block stays NaN)."""
     adj, det = _adjugate(Hll)
     inv = adj / det[..., None, None]
     mean = Hll.diagonal(dim1=-2, dim2=-1).sum(-1) / 3
